@@ -1,0 +1,88 @@
+"""The ``swarmmap`` command: one subcommand per service, plus ``status`` and ``up``.
+
+    swarmmap up --preset demo            # the whole system on this machine
+    swarmmap router|world|lidar|learner  # one service (what up, compose and SLURM start)
+    swarmmap status --config RUN_DIR/config.yaml
+
+Every subcommand's ``--help`` lists its options; each option is a field of the run's config
+(see swarmmap.shared.config) and overrides the config file and the environment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+from swarmmap.shared.config import DEFAULT_PRESET, ConfigError, RunConfig, add_common_arguments, config_from_args
+from swarmmap.shared.runtime import setup_logging, shutdown_event
+
+DESCRIPTIONS = {
+    "up": "Run the whole system locally: router, world, a lidar streamer and a learner per robot.",
+    "router": "A Zenoh router for discovery across hosts and containers.",
+    "world": "The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
+    "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
+    "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
+    "status": "List the live services of a run and their message rates.",
+}
+SECTIONS = {"up": "up", "router": None, "world": "world", "lidar": "lidar", "learner": "learner", "status": None}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="swarmmap", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, description in DESCRIPTIONS.items():
+        p = sub.add_parser(name, help=description, description=description)
+        add_common_arguments(p, SECTIONS[name])
+        if name == "up":
+            p.add_argument("--rounds", dest="learner.rounds", default=argparse.SUPPRESS,
+                           help="communication rounds per learner (learner.rounds)")
+        if name == "status":
+            p.add_argument("--window", type=float, default=2.0, help="seconds to measure message rates over")
+    return parser
+
+
+def _runner(command: str) -> Callable:
+    # Imported lazily: `swarmmap status --help` should not pay for torch and pybullet.
+    if command == "up":
+        from swarmmap.services.launcher import run
+    elif command == "router":
+        from swarmmap.services.router import run
+    elif command == "world":
+        from swarmmap.services.world import run
+    elif command == "lidar":
+        from swarmmap.services.lidar import run
+    elif command == "learner":
+        from swarmmap.services.learner.service import run
+    else:
+        raise ValueError(command)
+    return run
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command == "up" else None)
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        return 2
+    log = setup_logging(cfg.log_level, args.command)
+    if args.command == "status":
+        from swarmmap.services.status import report
+
+        print(report(cfg, args.window))
+        return 0
+    stop = shutdown_event()
+    try:
+        return _runner(args.command)(cfg, stop)
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        log.info("interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,70 @@
+"""Algorithm 1's transport over Zenoh: State and RoundComplete on each learner's own keys.
+
+A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete`` and
+subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
+than this node's model is refused (counted, logged once). Liveliness tokens of the neighbours
+tell the exchange when one has left.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+import numpy as np
+
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, Tensor
+
+from swarmmap.services.learner.exchange import Envelope
+
+
+class ZenohTransport:
+    """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.bus.Bus`."""
+
+    def __init__(self, bus: Bus, node: int, neighbours: set[int], param_count: int):
+        self.bus = bus
+        self.node = node
+        self.run = bus.keys.run
+        self.inbox: queue.Queue[Envelope] = queue.Queue()
+        self._lost: set[int] = set()
+        self._lock = threading.Lock()
+        self.state_pub = bus.publisher(bus.keys.state(node))
+        self.complete_pub = bus.publisher(bus.keys.round_complete(node))
+
+        def check(msg: State) -> None:
+            if msg.params.shape != [param_count]:
+                raise ProtocolError("shape", f"State.params has shape {msg.params.shape}, this model has {param_count}")
+
+        for j in sorted(neighbours):
+            bus.subscribe(bus.keys.state(j), State, self._on_state, check=check)
+            bus.subscribe(bus.keys.round_complete(j), RoundComplete, self._on_complete)
+
+        def on_alive(ident: str, alive: bool) -> None:
+            if ident.isdigit() and int(ident) in neighbours:
+                with self._lock:
+                    (self._lost.discard if alive else self._lost.add)(int(ident))
+
+        bus.watch_alive("learner", on_alive)
+
+    def _on_state(self, msg: State) -> None:
+        self.inbox.put(Envelope("state", msg.sender, msg.round, msg.params.numpy().copy()))
+
+    def _on_complete(self, msg: RoundComplete) -> None:
+        self.inbox.put(Envelope("complete", msg.sender, msg.round))
+
+    def send_state(self, round: int, params: np.ndarray) -> None:
+        self.state_pub.put(State(run=self.run, sender=self.node, round=round, params=Tensor.of(params, "<f4")))
+
+    def send_round_complete(self, round: int) -> None:
+        self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))
+
+    def receive(self, timeout: float) -> Envelope | None:
+        try:
+            return self.inbox.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def lost_peers(self) -> set[int]:
+        with self._lock:
+            return set(self._lost)

@@ -1,0 +1,240 @@
+"""One Zenoh session per service: typed publishing, validated subscriptions, liveliness.
+
+Usage::
+
+    with Bus.open(cfg.zenoh, Keys(cfg.key_prefix, cfg.run_id), "learner", 3) as bus:
+        pub = bus.publisher(bus.keys.state(3))
+        bus.subscribe(bus.keys.state("*"), State, on_state)
+        pub.put(State(run=..., sender=3, round=0, params=Tensor.of(theta)))
+
+Every refused payload is dropped with one log line per (key, reason) and counted in
+``bus.dropped``; the service keeps running. Data publishers are reliable and block rather
+than drop when a receiver is slow, so no training point or State is lost to congestion.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import zenoh
+
+from swarmmap.shared.config import ZenohSettings
+from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, decode, encode
+
+log = logging.getLogger(__name__)
+M = TypeVar("M", bound=Message)
+
+
+def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """A zenoh.Config from our settings: the JSON5 file first, then each field that is set."""
+    conf = zenoh.Config.from_file(str(settings.config_file)) if settings.config_file else zenoh.Config()
+    if settings.mode is not None:
+        conf.insert_json5("mode", json.dumps(settings.mode))
+    if settings.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if settings.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.multicast_scouting is not None:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    return conf
+
+
+class RateCounter:
+    """Counts messages and bytes per key; thread-safe."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.messages: collections.Counter[str] = collections.Counter()
+        self.bytes: collections.Counter[str] = collections.Counter()
+
+    def add(self, key: str, size: int) -> None:
+        with self._lock:
+            self.messages[key] += 1
+            self.bytes[key] += size
+
+    def bytes_where(self, keep: Callable[[str], bool]) -> int:
+        """Bytes counted on the keys for which ``keep(key)`` is true."""
+        with self._lock:
+            return sum(n for k, n in self.bytes.items() if keep(k))
+
+
+class Publisher:
+    """A declared publisher that encodes messages and counts what it sends."""
+
+    def __init__(self, bus: Bus, key: str):
+        self.key = key
+        self._bus = bus
+        self._pub = bus.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+
+    def put(self, message: Message) -> int:
+        """Send ``message``; returns its size in bytes."""
+        payload = encode(message)
+        self._pub.put(payload)
+        self._bus.sent.add(self.key, len(payload))
+        return len(payload)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class Bus:
+    """A service's Zenoh session with the run's keys, counters and its liveliness token."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, service: str, ident: int | str,
+                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES):
+        self.session = session
+        self.keys = keys
+        self.service = service
+        self.ident = ident
+        self.max_message_bytes = max_message_bytes
+        self.sent = RateCounter()
+        self.received = RateCounter()
+        self.dropped: collections.Counter[str] = collections.Counter()
+        self._logged: set[tuple[str, str]] = set()
+        self._handles: list[Any] = []
+        self._token: Any = None
+
+    @classmethod
+    def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0) -> Bus:
+        """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``."""
+        session = zenoh.open(zenoh_config(settings))
+        return cls(session, keys, service, ident)
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- liveliness
+
+    def announce(self) -> None:
+        """Declare this service's liveliness token (do it after its subscribers are declared,
+        so whoever sees the token can already reach them)."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(self.keys.alive(self.service, self.ident))
+
+    def alive(self, service: str = "*") -> set[tuple[str, str]]:
+        """(service, id) of every live token of this run, optionally of one service."""
+        out = set()
+        for reply in self.session.liveliness().get(self.keys.alive(service), timeout=2.0):
+            if reply.ok is not None:
+                out.add(self.keys.parse_alive(str(reply.ok.key_expr)))
+        return out
+
+    def watch_alive(self, service: str, on_change: Callable[[str, bool], None]) -> None:
+        """Call ``on_change(id, alive)`` for every token of ``service``, past and future."""
+
+        def handler(sample: zenoh.Sample) -> None:
+            _, ident = self.keys.parse_alive(str(sample.key_expr))
+            on_change(ident, sample.kind == zenoh.SampleKind.PUT)
+
+        self._handles.append(
+            self.session.liveliness().declare_subscriber(self.keys.alive(service), handler, history=True))
+
+    def wait_alive(self, service: str, idents: set[str], timeout: float,
+                   stop: threading.Event | None = None) -> set[str]:
+        """Wait until every id in ``idents`` of ``service`` has a token; return those missing."""
+        deadline = time.monotonic() + timeout
+        missing = set(idents)
+        while True:
+            missing = set(idents) - {i for s, i in self.alive(service)}
+            if not missing or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                return missing
+            time.sleep(0.1) if stop is None else stop.wait(0.1)
+
+    # -- data
+
+    def publisher(self, key: str) -> Publisher:
+        pub = Publisher(self, key)
+        self._handles.append(pub)
+        return pub
+
+    def refuse(self, key: str, err: ProtocolError) -> None:
+        """Count a refused payload; log the first of each (key, reason)."""
+        self.dropped[err.reason] += 1
+        if (key, err.reason) not in self._logged:
+            self._logged.add((key, err.reason))
+            log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
+
+    def subscribe(self, key_expr: str, model: type[M], callback: Callable[[M], None], *,
+                  sender_from_key: bool = True, check: Callable[[M], None] | None = None) -> None:
+        """Call ``callback(message)`` for every valid ``model`` published on ``key_expr``.
+
+        With ``sender_from_key`` the id in the key (``robots/<id>/``, ``learners/<id>/``) must
+        equal the message's sender. ``check`` may raise ProtocolError to refuse more.
+        """
+
+        def handler(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            payload = sample.payload.to_bytes()
+            self.received.add(key, len(payload))
+            try:
+                sender = self.keys.ident_of(key) if sender_from_key else None
+                msg = decode(payload, model, run=self.keys.run, sender=sender, max_bytes=self.max_message_bytes)
+                if check is not None:
+                    check(msg)
+            except ProtocolError as err:
+                self.refuse(key, err)
+                return
+            try:
+                callback(msg)
+            except Exception:  # a bug in a handler must not kill Zenoh's thread silently
+                log.exception("handler for %s failed", key)
+
+        self._handles.append(self.session.declare_subscriber(key_expr, handler))
+
+    def serve(self, key: str, reply: Callable[[], bytes]) -> None:
+        """Answer every query on ``key`` with ``reply()``."""
+
+        def handler(query: zenoh.Query) -> None:
+            try:
+                payload = reply()
+            except Exception as exc:
+                log.exception("query on %s failed", key)
+                query.reply_err(str(exc).encode())
+                return
+            query.reply(key, payload)
+            self.sent.add(key, len(payload))
+
+        self._handles.append(self.session.declare_queryable(key, handler))
+
+    def query(self, key: str, model: type[M], timeout: float,
+              stop: threading.Event | None = None, retry_every: float = 0.5) -> M | None:
+        """Query ``key`` until a valid ``model`` reply comes or ``timeout`` passes."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
+            for reply in self.session.get(key, timeout=min(10.0, max(0.5, deadline - time.monotonic()))):
+                if reply.ok is None:
+                    continue
+                payload = reply.ok.payload.to_bytes()
+                self.received.add(key, len(payload))
+                try:
+                    return decode(payload, model, run=self.keys.run, max_bytes=self.max_message_bytes)
+                except ProtocolError as err:
+                    self.refuse(key, err)
+            time.sleep(retry_every) if stop is None else stop.wait(retry_every)
+        return None
+
+    def close(self) -> None:
+        for handle in reversed(self._handles):
+            try:
+                handle.undeclare()
+            except Exception:
+                pass
+        self._handles.clear()
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:
+                pass
+            self._token = None
+        self.session.close()
+

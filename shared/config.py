@@ -1,0 +1,374 @@
+"""Configuration: one pydantic model per service, one shared Zenoh config, and how they load.
+
+A run is described by one :class:`RunConfig` (written as ``RUN_DIR/config.yaml`` by
+``swarmmap up``). Each service reads it with precedence
+
+    defaults < preset < config file (``--config``) < environment (``SWARMMAP_...``) < command line
+
+Environment variables name a field by its path: ``SWARMMAP_SEED`` for a top-level field,
+``SWARMMAP_LEARNER__ROUNDS`` or ``SWARMMAP_ZENOH__CONNECT`` for a section's field; values are
+parsed as YAML (``[a, b]`` is a list). ``--set learner.lr_start=0.01`` overrides any field.
+A wrong value stops the service at start with a message naming the field and what it allows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import sys
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from swarmmap.shared.protocol import NAME_PATTERN
+
+ENV_PREFIX = "SWARMMAP_"
+
+
+class Section(BaseModel):
+    """Base of every config model: unknown keys are errors, assignments are validated."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ZenohSettings(Section):
+    """How a service's Zenoh session is opened; unset fields keep Zenoh's own defaults."""
+
+    mode: Literal["peer", "client", "router"] | None = Field(
+        None, description="Zenoh session mode (Zenoh's default: peer)")
+    connect: list[str] = Field(
+        default_factory=list, description="endpoints to connect to, e.g. tcp/10.0.0.5:7447")
+    listen: list[str] = Field(
+        default_factory=list, description="endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    multicast_scouting: bool | None = Field(
+        None, description="UDP multicast discovery of peers (Zenoh's default: on)")
+    config_file: Path | None = Field(
+        None, description="a Zenoh JSON5 config file; the fields above override it")
+
+
+class RouterSettings(Section):
+    """The router service: a Zenoh session in router mode (listens on zenoh.listen)."""
+
+
+class WorldSettings(Section):
+    """The world simulator: floor plan, robots, paths and the simulated LiDAR."""
+
+    rooms_x: int = Field(3, ge=1, le=12, description="procedural plan: rooms along x")
+    rooms_y: int = Field(2, ge=1, le=12, description="procedural plan: rooms along y")
+    room_min_m: float = Field(2.5, gt=0.5, description="procedural plan: smallest room side (m)")
+    room_max_m: float = Field(4.5, gt=0.5, description="procedural plan: largest room side (m)")
+    wall_thickness_m: float = Field(0.12, gt=0.01, le=1.0, description="wall thickness (m)")
+    wall_height_m: float = Field(2.5, gt=0.2, description="extruded wall height (m)")
+    door_width_m: float = Field(0.9, gt=0.3, description="door opening width (m)")
+    extra_door_prob: float = Field(0.3, ge=0, le=1, description="chance of a door beyond the spanning tree")
+    grid_resolution_m: float = Field(0.05, gt=0.005, le=1.0, description="ground-truth grid cell size (m)")
+    speed_mps: float = Field(0.22, gt=0, le=5, description="robot speed along its path (m/s)")
+    sim_step_s: float = Field(0.1, gt=0, le=1, description="simulation time step (s)")
+    time_scale: float = Field(0.0, ge=0, description="simulated seconds per wall second; 0 = as fast as the consumers take it")
+    rooms_per_robot: int = Field(0, ge=0, description="rooms each robot visits; 0 = enough for the team to cover the plan")
+    lidar_beams: int = Field(360, ge=1, le=4096, description="beams per scan")
+    lidar_fov_deg: float = Field(360.0, gt=0, le=360, description="angular range of a scan (deg)")
+    lidar_min_range_m: float = Field(0.12, ge=0, description="closest measurable range (m)")
+    lidar_max_range_m: float = Field(3.5, gt=0, description="farthest measurable range (m)")
+    lidar_height_m: float = Field(0.18, gt=0, description="LiDAR height above the floor (m)")
+    lidar_rate_hz: float = Field(5.0, gt=0, le=100, description="scans per simulated second")
+    val_scans: int = Field(300, ge=1, description="validation scans from random free poses")
+    val_beams: int = Field(60, ge=1, description="beams per validation scan")
+    wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for every lidar and learner to be alive before driving")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> WorldSettings:
+        if self.room_min_m > self.room_max_m:
+            raise ValueError(f"room_min_m ({self.room_min_m}) must not exceed room_max_m ({self.room_max_m})")
+        if self.lidar_min_range_m >= self.lidar_max_range_m:
+            raise ValueError("lidar_min_range_m must be below lidar_max_range_m")
+        if self.door_width_m >= self.room_min_m - 2 * self.wall_thickness_m:
+            raise ValueError("door_width_m must be narrower than the smallest room")
+        return self
+
+
+class LidarSettings(Section):
+    """A LiDAR streamer: turns its robot's scans into labelled training points."""
+
+    robot: int | None = Field(None, ge=0, description="which robot this streamer serves (0..robots-1)")
+    samples_per_beam: int = Field(12, ge=1, le=1000, description="free points sampled along each beam")
+    occupied_depth_m: float = Field(0.03, ge=0, le=0.5, description="how far behind the surface the occupied point lies (m)")
+
+
+class LearnerSettings(Section):
+    """A learner: DiNNO consensus training of an implicit occupancy network (Algorithm 1)."""
+
+    robot: int | None = Field(None, ge=0, description="which robot this learner serves (0..robots-1)")
+    rounds: int = Field(200, ge=1, description="communication rounds of Algorithm 1 (DiNNO outer iterations)")
+    primal_iterations: int = Field(5, ge=1, description="optimizer steps per round")
+    batch_size: int = Field(4096, ge=1, description="training points per optimizer step")
+    optimizer: Literal["adam", "adamw", "sgd"] = Field("adam", description="primal optimizer")
+    lr_start: float = Field(1e-3, gt=0, description="primal learning rate at round 0")
+    lr_finish: float = Field(1e-4, gt=0, description="primal learning rate at the last round")
+    lr_schedule: Literal["constant", "linear", "log"] = Field("log", description="primal learning-rate schedule")
+    rho_init: float = Field(0.3, ge=0, description="initial ADMM penalty rho")
+    rho_growth: float = Field(1.0004, ge=1.0, description="rho is multiplied by this each round")
+    graph: Literal["complete", "ring"] = Field("complete", description="communication graph")
+    model_shape: list[int] = Field(
+        default_factory=lambda: [2, 256, 64, 64, 64, 1],
+        description="FourierNet layer widths: input 2, sine layer, ReLU layers, output 1")
+    siren_scale: float = Field(30.0, gt=0, description="frequency scale of the sine layer (inputs normalised to [-1, 1])")
+    eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
+    map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
+    collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
+    peer_timeout_s: float = Field(120.0, gt=0, description="fail when no peer message arrives for this long")
+    resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
+    torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
+    device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
+
+    @model_validator(mode="after")
+    def _shape(self) -> LearnerSettings:
+        if len(self.model_shape) < 3 or self.model_shape[0] != 2 or self.model_shape[-1] != 1:
+            raise ValueError(f"model_shape must start with 2, end with 1 and have a hidden layer, got {self.model_shape}")
+        if any(w < 1 for w in self.model_shape):
+            raise ValueError("model_shape widths must be positive")
+        return self
+
+
+class UpSettings(Section):
+    """The launcher ``swarmmap up``."""
+
+    stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
+    start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
+
+
+class RunConfig(Section):
+    """The whole resolved configuration of one run (``RUN_DIR/config.yaml``)."""
+
+    preset: str | None = Field(None, description="named preset applied under the config file (smoke, demo)")
+    run_id: str = Field("default", pattern=NAME_PATTERN, description="run id: every key lives under <key_prefix>/<run_id>")
+    key_prefix: str = Field("swarmmap", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$", description="first chunks of every key expression")
+    robots: int = Field(3, ge=1, le=64, description="number of robots (and lidar streamers and learners)")
+    seed: int = Field(0, ge=0, description="seed of the floor plan, paths, sampling and model initialisation")
+    run_dir: Path | None = Field(None, description="directory for the run's outputs (config, metrics, models, maps)")
+    log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="log verbosity")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    router: RouterSettings = Field(default_factory=RouterSettings)
+    world: WorldSettings = Field(default_factory=WorldSettings)
+    lidar: LidarSettings = Field(default_factory=LidarSettings)
+    learner: LearnerSettings = Field(default_factory=LearnerSettings)
+    up: UpSettings = Field(default_factory=UpSettings)
+
+    def dump_yaml(self) -> str:
+        """The config as YAML, loadable again with ``--config``."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+COMMON_FIELDS = ("run_id", "key_prefix", "robots", "seed", "run_dir", "log_level")
+
+
+class ConfigError(SystemExit):
+    """A refused configuration; exits with status 2 and a message naming the field."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+# ----------------------------------------------------------------------------- presets
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # Seconds per robot: for tests and a first try.
+    "smoke": {
+        "robots": 3,
+        "world": {"rooms_x": 2, "rooms_y": 2, "lidar_beams": 72, "lidar_rate_hz": 2.0,
+                  "speed_mps": 0.5, "val_scans": 150, "val_beams": 48, "grid_resolution_m": 0.05},
+        "lidar": {"samples_per_beam": 8},
+        "learner": {"rounds": 20, "primal_iterations": 5, "batch_size": 1024,
+                    "model_shape": [2, 64, 32, 32, 1], "lr_start": 3e-3, "lr_finish": 1e-3,
+                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 30.0},
+    },
+    # The default: 7 robots, about ten minutes on two CPU cores, maps that show the rooms.
+    "demo": {
+        "robots": 7,
+        "world": {"rooms_x": 3, "rooms_y": 3, "lidar_beams": 120, "lidar_rate_hz": 2.0,
+                  "speed_mps": 0.5, "val_scans": 400, "val_beams": 60},
+        "lidar": {"samples_per_beam": 10},
+        "learner": {"rounds": 300, "primal_iterations": 5, "batch_size": 2048,
+                    "model_shape": [2, 256, 64, 64, 64, 1], "lr_start": 3e-3, "lr_finish": 3e-4,
+                    "eval_every": 10, "map_resolution_m": 0.05},
+    },
+}
+DEFAULT_PRESET = "demo"
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """A copy of ``base`` with ``over`` merged in, nested dicts merged key by key."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _set_path(tree: dict[str, Any], path: list[str], value: Any) -> None:
+    for part in path[:-1]:
+        tree = tree.setdefault(part, {})
+        if not isinstance(tree, dict):
+            raise ConfigError(f"config error: {'.'.join(path)}: {part} is not a section")
+    tree[path[-1]] = value
+
+
+def _parse_scalar(text: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """Read a YAML (or JSON) config file; refuse anything but a mapping."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config error: config file {path} does not exist") from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"config error: config file {path} is not valid YAML: {exc}") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"config error: config file {path} must hold a mapping, got {type(doc).__name__}")
+    return doc
+
+
+def env_overrides(environ: dict[str, str] | None = None) -> dict[str, Any]:
+    """``SWARMMAP_SEED=3`` -> {seed: 3}; ``SWARMMAP_LEARNER__ROUNDS=9`` -> {learner: {rounds: 9}}."""
+    environ = os.environ if environ is None else environ
+    tree: dict[str, Any] = {}
+    sections = {name for name, f in RunConfig.model_fields.items() if _is_model(f.annotation)}
+    for key, raw in environ.items():
+        if not key.startswith(ENV_PREFIX):
+            continue
+        path = key[len(ENV_PREFIX) :].lower().split("__")
+        if path[0] not in RunConfig.model_fields:
+            continue  # not ours (e.g. SWARMMAP_HOME); unknown section fields are caught by validation
+        if path[0] in sections and len(path) != 2:
+            raise ConfigError(f"config error: {key}: name a field as {ENV_PREFIX}{path[0].upper()}__<FIELD>")
+        _set_path(tree, path, _parse_scalar(raw))
+    return tree
+
+
+def _is_model(annotation: Any) -> bool:
+    return isinstance(annotation, type) and issubclass(annotation, BaseModel)
+
+
+def format_validation_error(exc: ValidationError) -> str:
+    """One line per refused field: ``learner.optimizer: Input should be 'adam', ... (got 'adan')``."""
+    lines = []
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"]) or "config"
+        got = f" (got {err['input']!r})" if err["type"] not in ("missing",) and not isinstance(err.get("input"), dict) else ""
+        lines.append(f"  {where}: {err['msg']}{got}")
+    return "config error:\n" + "\n".join(lines)
+
+
+def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = None,
+            preset: str | None = None, environ: dict[str, str] | None = None) -> RunConfig:
+    """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict)."""
+    file_doc = read_config_file(config_file) if config_file else {}
+    env_doc = env_overrides(environ)
+    cli = cli or {}
+    name = cli.get("preset") or env_doc.get("preset") or file_doc.get("preset") or preset
+    merged: dict[str, Any] = {}
+    if name is not None:
+        if name not in PRESETS:
+            raise ConfigError(f"config error:\n  preset: unknown preset {name!r}; allowed: {', '.join(PRESETS)}")
+        merged = deep_merge(merged, PRESETS[name])
+        merged["preset"] = name
+    for layer in (file_doc, env_doc, cli):
+        merged = deep_merge(merged, layer)
+    try:
+        return RunConfig.model_validate(merged)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc)) from None
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def _base_type(annotation: Any) -> Any:
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return _base_type(args[0]) if len(args) == 1 else annotation
+    return annotation
+
+
+def add_model_arguments(parser: argparse.ArgumentParser, model: type[BaseModel], dest_prefix: str,
+                        flag_prefix: str = "", skip: tuple[str, ...] = ()) -> None:
+    """Add one ``--flag`` per field of ``model``; values are validated later by pydantic."""
+    for name, field in model.model_fields.items():
+        if name in skip or _is_model(field.annotation):
+            continue
+        flag = "--" + flag_prefix + name.replace("_", "-")
+        base = _base_type(field.annotation)
+        default = field.get_default(call_default_factory=True)
+        help_text = (field.description or "") + ("" if default is None else f" [default: {default}]")
+        kwargs: dict[str, Any] = {"dest": f"{dest_prefix}{name}", "default": argparse.SUPPRESS, "help": help_text,
+                                  "metavar": name.upper()}
+        if base is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+            del kwargs["metavar"]
+        elif typing.get_origin(base) is list:
+            kwargs["nargs"] = "+"
+            kwargs["metavar"] = name.upper()
+        elif typing.get_origin(base) is Literal:
+            kwargs["metavar"] = "{" + ",".join(map(str, typing.get_args(base))) + "}"
+        parser.add_argument(flag, **kwargs)
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, section: str | None) -> None:
+    """The options every service takes: config file, preset, run, Zenoh, ``--set``, and its section."""
+    g = parser.add_argument_group("run")
+    g.add_argument("--config", type=Path, default=None, help="YAML config file (e.g. a run's config.yaml)")
+    g.add_argument("--preset", dest="top.preset", default=argparse.SUPPRESS, metavar="{" + ",".join(PRESETS) + "}",
+                   help="named preset applied under the config file")
+    add_model_arguments(g, RunConfig, "top.", skip=("preset",))
+    g.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any field by its dotted path, e.g. --set learner.lr_start=0.01 (repeatable)")
+    z = parser.add_argument_group("zenoh")
+    add_model_arguments(z, ZenohSettings, "zenoh.", flag_prefix="zenoh-")
+    if section is not None:
+        s = parser.add_argument_group(section)
+        add_model_arguments(s, RunConfig.model_fields[section].annotation, f"{section}.")
+
+
+def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = None,
+                     preset: str | None = None) -> RunConfig:
+    """Turn parsed arguments into the resolved RunConfig (see :func:`resolve`)."""
+    cli: dict[str, Any] = {}
+    for dest, value in vars(args).items():
+        if "." not in dest:
+            continue
+        head, field = dest.split(".", 1)
+        _set_path(cli, [field] if head == "top" else [head, field], value)
+    for item in getattr(args, "overrides", []):
+        if "=" not in item:
+            raise ConfigError(f"config error: --set {item!r}: expected KEY=VALUE")
+        key, raw = item.split("=", 1)
+        _set_path(cli, key.strip().split("."), _parse_scalar(raw))
+    return resolve(cli, config_file=getattr(args, "config", None), preset=preset, environ=environ)
+
+
+def fail(message: str) -> typing.NoReturn:
+    """Print a configuration error and exit with status 2."""
+    print(message, file=sys.stderr)
+    raise SystemExit(2)

@@ -1,0 +1,118 @@
+"""Implicit occupancy networks and what every user of a model needs: build, flatten, predict.
+
+:class:`FourierNet` is DiNNO's network: a sine (SIREN) first layer, ReLU hidden layers and a
+sigmoid output, mapping a world point (x, y) in metres to an occupancy probability. Inputs are
+normalised to [-1, 1] over the map's bounds by fixed buffers, so a saved model is
+self-contained. Parameters travel as one flat float32 vector (DiNNO's ``parameters_to_vector``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from swarmmap.shared.atomic import atomic_write_bytes
+
+
+class SirenLayer(nn.Module):
+    """``sin(scale * (W x + b))`` with SIREN's first-layer initialisation of W."""
+
+    def __init__(self, in_features: int, out_features: int, scale: float):
+        super().__init__()
+        self.linear = nn.Linear(in_features, out_features)
+        self.scale = scale
+        bound = math.sqrt(6 / out_features)
+        with torch.no_grad():
+            self.linear.weight.uniform_(-bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sin(self.scale * self.linear(x))
+
+
+class FourierNet(nn.Module):
+    """DiNNO's FourierNet: shape [2, h1, ..., 1]; h1 is the sine layer, the rest ReLU, sigmoid out."""
+
+    def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float]):
+        super().__init__()
+        self.shape = list(shape)
+        self.scale = scale
+        x0, y0, x1, y1 = bounds
+        self.register_buffer("centre", torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=torch.float32))
+        self.register_buffer("half_extent", torch.tensor(max(x1 - x0, y1 - y0) / 2, dtype=torch.float32))
+        layers: list[nn.Module] = [SirenLayer(shape[0], shape[1], scale)]
+        for a, b in zip(shape[1:-2], shape[2:-1]):
+            layers += [nn.Linear(a, b), nn.ReLU()]
+        layers += [nn.Linear(shape[-2], shape[-1])]
+        self.seq = nn.Sequential(*layers)
+
+    def logits(self, xy: torch.Tensor) -> torch.Tensor:
+        """Pre-sigmoid outputs (N,) for points ``xy`` (N, 2) in metres."""
+        return self.seq((xy - self.centre) / self.half_extent).squeeze(-1)
+
+    def forward(self, xy: torch.Tensor) -> torch.Tensor:
+        """Occupancy probabilities (N,) for points ``xy`` (N, 2) in metres."""
+        return torch.sigmoid(self.logits(xy))
+
+
+def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int) -> FourierNet:
+    """A FourierNet initialised from ``seed`` (every learner of a run starts from the same one, as in DiNNO)."""
+    gen_state = torch.random.get_rng_state()
+    torch.manual_seed(seed)
+    try:
+        return FourierNet(shape, scale, bounds)
+    finally:
+        torch.random.set_rng_state(gen_state)
+
+
+def get_flat(model: nn.Module) -> torch.Tensor:
+    """The model's parameters as one detached flat vector."""
+    return nn.utils.parameters_to_vector(model.parameters()).detach().clone()
+
+
+def set_flat(model: nn.Module, flat: torch.Tensor) -> None:
+    """Load a flat vector into the model's parameters."""
+    nn.utils.vector_to_parameters(flat.to(next(model.parameters()).device, torch.float32), model.parameters())
+
+
+def param_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+@torch.no_grad()
+def predict(model: FourierNet, points: np.ndarray, batch: int = 65536) -> np.ndarray:
+    """Occupancy probabilities (N,) float32 of ``points`` (N, 2), in batches."""
+    device = next(model.parameters()).device
+    out = []
+    for s in range(0, len(points), batch):
+        xy = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=device)
+        out.append(model(xy).cpu().numpy())
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.float32)
+
+
+def save_model(model: FourierNet, path: Path, **meta: object) -> None:
+    """Write the model (state dict, shape, scale and ``meta``) atomically."""
+    import io
+
+    buf = io.BytesIO()
+    torch.save({"kind": "fourier", "shape": model.shape, "scale": model.scale,
+                "state_dict": model.state_dict(), "meta": meta}, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_model(path: Path) -> FourierNet:
+    """Load a model written by :func:`save_model`."""
+    doc = torch.load(path, map_location="cpu", weights_only=True)
+    model = FourierNet(doc["shape"], doc["scale"], (0.0, 0.0, 1.0, 1.0))
+    model.load_state_dict(doc["state_dict"])
+    return model
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu; anything else as given."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)

@@ -1,0 +1,360 @@
+"""The swarmmap wire protocol: every key expression and every message, in one module.
+
+Keys live under ``<prefix>/<run>/`` (see :class:`Keys`). Every payload is one msgpack map
+with a schema version ``v`` and a ``kind``; tensors travel as ``{"dtype", "shape", "data"}``
+with raw little-endian bytes, never pickle. :func:`decode` refuses anything malformed,
+oversized, from another run, from a sender that does not match its key, of the wrong shape
+or dtype, or non-finite, by raising :class:`ProtocolError` with a short reason.
+The README's "Wire protocol" section documents all of this for clients in other languages.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+SCHEMA_VERSION = 1
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+
+NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+_NAME_RE = re.compile(NAME_PATTERN)
+
+# Little-endian dtype strings a tensor may carry ("|u1" has no byte order).
+TENSOR_DTYPES = ("<f4", "<f8", "<i4", "<i8", "|u1")
+MAX_TENSOR_DIMS = 4
+
+
+class ProtocolError(ValueError):
+    """A payload that a receiver refuses; ``reason`` is a short tag used for counting."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+# ----------------------------------------------------------------------------- key expressions
+
+
+def check_name(value: str, what: str) -> str:
+    """Return ``value`` if it is a safe key-expression chunk (no ``/``, ``*``, ``$``...)."""
+    if not isinstance(value, str) or not _NAME_RE.match(value):
+        raise ValueError(f"{what} must match {NAME_PATTERN} (letters, digits, _ . -), got {value!r}")
+    return value
+
+
+class Keys:
+    """Builds every key expression of one run; no service writes a key string inline.
+
+    Layout under ``<prefix>/<run>``::
+
+        robots/<id>/scan            Scan        world -> lidar
+        robots/<id>/samples         Samples     lidar -> learner
+        learners/<id>/state         State       learner -> neighbours (Algorithm 1)
+        learners/<id>/round-complete RoundComplete learner -> neighbours (Algorithm 1)
+        learners/<id>/metrics       Metrics     learner -> launcher, observer
+        world/map                   WorldMap    queryable served by the world
+        alive/<service>/<id>        liveliness tokens of every service
+    """
+
+    def __init__(self, prefix: str, run: str):
+        self.prefix = "/".join(check_name(part, "key prefix part") for part in prefix.split("/"))
+        self.run = check_name(run, "run id")
+        self.root = f"{self.prefix}/{self.run}"
+
+    def scan(self, robot: int | str) -> str:
+        return f"{self.root}/robots/{robot}/scan"
+
+    def samples(self, robot: int | str) -> str:
+        return f"{self.root}/robots/{robot}/samples"
+
+    def state(self, robot: int | str) -> str:
+        return f"{self.root}/learners/{robot}/state"
+
+    def round_complete(self, robot: int | str) -> str:
+        return f"{self.root}/learners/{robot}/round-complete"
+
+    def metrics(self, robot: int | str) -> str:
+        return f"{self.root}/learners/{robot}/metrics"
+
+    def world_map(self) -> str:
+        return f"{self.root}/world/map"
+
+    def alive(self, service: str = "*", ident: int | str = "*") -> str:
+        return f"{self.root}/alive/{service}/{ident}"
+
+    def everything(self) -> str:
+        return f"{self.root}/**"
+
+    def parse_alive(self, key: str) -> tuple[str, str]:
+        """``.../alive/<service>/<id>`` -> ``(service, id)``."""
+        tail = key[len(self.root) + 1 :].split("/")
+        if not key.startswith(self.root + "/") or len(tail) != 3 or tail[0] != "alive":
+            raise ValueError(f"not a liveliness key of run {self.run!r}: {key!r}")
+        return tail[1], tail[2]
+
+    def ident_of(self, key: str) -> int:
+        """The numeric id in ``.../robots/<id>/...`` or ``.../learners/<id>/...``."""
+        tail = key[len(self.root) + 1 :].split("/")
+        if not key.startswith(self.root + "/") or len(tail) < 3 or not tail[1].isdigit():
+            raise ProtocolError("bad-key", f"key {key!r} carries no numeric id under {self.root!r}")
+        return int(tail[1])
+
+
+# ----------------------------------------------------------------------------- tensors
+
+
+class Tensor(BaseModel):
+    """An n-d array on the wire: raw little-endian bytes plus dtype and shape."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    dtype: Literal[TENSOR_DTYPES]  # type: ignore[valid-type]
+    shape: Annotated[list[Annotated[int, Field(ge=0)]], Field(max_length=MAX_TENSOR_DIMS)]
+    data: bytes
+
+    @model_validator(mode="after")
+    def _check(self) -> Tensor:
+        expected = math.prod(self.shape) * np.dtype(self.dtype).itemsize
+        if len(self.data) != expected:
+            raise ValueError(f"data has {len(self.data)} bytes, dtype {self.dtype} shape {self.shape} needs {expected}")
+        if self.dtype[1] == "f" and not np.isfinite(self.numpy()).all():
+            raise ValueError("non-finite values")
+        return self
+
+    def numpy(self) -> np.ndarray:
+        """A read-only view of the data (copy it before writing)."""
+        return np.frombuffer(self.data, dtype=np.dtype(self.dtype)).reshape(self.shape)
+
+    @classmethod
+    def of(cls, array: Any, dtype: str | None = None) -> Tensor:
+        """Encode a numpy array (or anything array-like, a torch tensor on the CPU too)."""
+        arr = np.asarray(array)
+        if dtype is not None:
+            arr = arr.astype(np.dtype(dtype), copy=False)
+        arr = np.ascontiguousarray(arr.astype(arr.dtype.newbyteorder("<"), copy=False))
+        code = arr.dtype.str
+        return cls(dtype=code, shape=list(arr.shape), data=arr.tobytes())
+
+
+def _require(t: Tensor, name: str, dtype: str, ndim: int, trailing: tuple[int, ...] = ()) -> None:
+    if t.dtype != dtype:
+        raise ValueError(f"{name} must have dtype {dtype}, got {t.dtype}")
+    if len(t.shape) != ndim or tuple(t.shape[ndim - len(trailing) :]) != trailing:
+        raise ValueError(f"{name} must have shape (n{', ' + ', '.join(map(str, trailing)) if trailing else ''}), got {tuple(t.shape)}")
+
+
+# ----------------------------------------------------------------------------- messages
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+RobotId = Annotated[int, Field(ge=0, le=9999)]
+Round = Annotated[int, Field(ge=0, le=10**9)]
+
+
+class Message(BaseModel):
+    """Fields every message carries: schema version, kind, run id and sender id."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    KIND: ClassVar[str] = ""
+
+    v: Literal[1] = SCHEMA_VERSION
+    kind: str
+    run: Annotated[str, Field(pattern=NAME_PATTERN)]
+    sender: RobotId
+
+    def __init__(self, **data: Any):
+        data.setdefault("kind", self.KIND)
+        super().__init__(**data)
+
+    @field_validator("kind")
+    @classmethod
+    def _kind(cls, value: str) -> str:
+        if value != cls.KIND:
+            raise ValueError(f"kind must be {cls.KIND!r}, got {value!r}")
+        return value
+
+
+class Scan(Message):
+    """One raw LiDAR scan of a robot, world -> lidar. ``hit[i]`` is 0 where beam i saw nothing
+    within ``max_range`` (its range is then ``max_range``)."""
+
+    KIND: ClassVar[str] = "Scan"
+    seq: Annotated[int, Field(ge=0)]
+    t: FiniteFloat
+    pose: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+    max_range: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    angles: Tensor
+    ranges: Tensor
+    hit: Tensor
+    last: bool = False
+
+    @model_validator(mode="after")
+    def _shapes(self) -> Scan:
+        for name in ("angles", "ranges"):
+            _require(getattr(self, name), name, "<f4", 1)
+        _require(self.hit, "hit", "|u1", 1)
+        if not (self.angles.shape == self.ranges.shape == self.hit.shape):
+            raise ValueError("angles, ranges and hit must have the same length")
+        return self
+
+
+class Samples(Message):
+    """Labelled training points from one scan, lidar -> learner: label 0 = free, 1 = occupied."""
+
+    KIND: ClassVar[str] = "Samples"
+    seq: Annotated[int, Field(ge=0)]
+    t: FiniteFloat
+    position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
+    points: Tensor
+    labels: Tensor
+    last: bool = False
+
+    @model_validator(mode="after")
+    def _shapes(self) -> Samples:
+        _require(self.points, "points", "<f4", 2, (2,))
+        _require(self.labels, "labels", "<f4", 1)
+        if self.points.shape[0] != self.labels.shape[0]:
+            raise ValueError("points and labels must have the same length")
+        labels = self.labels.numpy()
+        if ((labels < 0) | (labels > 1)).any():
+            raise ValueError("labels must lie in [0, 1]")
+        return self
+
+
+class State(Message):
+    """Algorithm 1's State message: a learner's flattened parameters at the start of ``round``."""
+
+    KIND: ClassVar[str] = "State"
+    round: Round
+    params: Tensor
+
+    @model_validator(mode="after")
+    def _shapes(self) -> State:
+        _require(self.params, "params", "<f4", 1)
+        return self
+
+
+class RoundComplete(Message):
+    """Algorithm 1's RoundComplete message: the sender finished its node update of ``round``."""
+
+    KIND: ClassVar[str] = "RoundComplete"
+    round: Round
+
+
+class Metrics(Message):
+    """A learner's evaluation at ``round``; ``final`` marks the last one of its run."""
+
+    KIND: ClassVar[str] = "Metrics"
+    round: Round
+    wall_time_s: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    val_bce: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    consensus_error: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    bytes_sent: Annotated[int, Field(ge=0)]
+    bytes_received: Annotated[int, Field(ge=0)]
+    compute_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    wait_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    send_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    n_points: Annotated[int, Field(ge=0)] = 0
+    pid: Annotated[int, Field(ge=0)] = 0
+    final: bool = False
+
+
+class WorldMap(Message):
+    """The world's reply on ``world/map``: the ground-truth occupancy grid and a validation set.
+
+    ``grid[r, c]`` (1 = occupied) covers x in [origin_x + c*res, +res) and y in
+    [origin_y + r*res, +res): row 0 is the southern edge (y up). ``val_labels`` come from the
+    ground truth, never from a sensor. ``sender`` is 0 (there is one world)."""
+
+    KIND: ClassVar[str] = "WorldMap"
+    resolution: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    origin: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
+    grid: Tensor
+    val_points: Tensor
+    val_labels: Tensor
+    robots: Annotated[int, Field(ge=1, le=10000)]
+
+    @model_validator(mode="after")
+    def _shapes(self) -> WorldMap:
+        _require(self.grid, "grid", "|u1", 2)
+        _require(self.val_points, "val_points", "<f4", 2, (2,))
+        _require(self.val_labels, "val_labels", "<f4", 1)
+        if self.val_points.shape[0] != self.val_labels.shape[0]:
+            raise ValueError("val_points and val_labels must have the same length")
+        return self
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) of the grid in metres."""
+        h, w = self.grid.shape
+        x0, y0 = self.origin
+        return x0, y0, x0 + w * self.resolution, y0 + h * self.resolution
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.KIND: cls for cls in (Scan, Samples, State, RoundComplete, Metrics, WorldMap)
+}
+
+M = TypeVar("M", bound=Message)
+
+
+# ----------------------------------------------------------------------------- codec
+
+
+def encode(message: Message) -> bytes:
+    """Serialise a message to its msgpack bytes."""
+    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+
+
+def decode(
+    payload: bytes,
+    expected: type[M],
+    *,
+    run: str,
+    sender: int | None = None,
+    max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+) -> M:
+    """Decode and validate one payload as ``expected``; raise :class:`ProtocolError` if refused.
+
+    ``sender`` (when given) is the id named by the key the payload arrived on: a message whose
+    own ``sender`` differs is refused, so nobody can speak for another robot.
+    """
+    if len(payload) > max_bytes:
+        raise ProtocolError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
+    try:
+        doc = msgpack.unpackb(
+            payload,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=max_bytes,
+            max_str_len=1 << 16,
+            max_array_len=1 << 16,
+            max_map_len=256,
+            max_ext_len=0,
+        )
+    except Exception as exc:  # msgpack raises several unrelated exception types
+        raise ProtocolError("malformed", f"not msgpack: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ProtocolError("malformed", f"top level must be a map, got {type(doc).__name__}")
+    if doc.get("v") != SCHEMA_VERSION:
+        raise ProtocolError("version", f"schema version {doc.get('v')!r}, this build speaks {SCHEMA_VERSION}")
+    if doc.get("kind") != expected.KIND:
+        raise ProtocolError("kind", f"expected {expected.KIND}, got {doc.get('kind')!r}")
+    if doc.get("run") != run:
+        raise ProtocolError("wrong-run", f"run {doc.get('run')!r}, expected {run!r}")
+    if sender is not None and doc.get("sender") != sender:
+        raise ProtocolError("unknown-sender", f"sender {doc.get('sender')!r} on a key of {sender}")
+    try:
+        return expected.model_validate(doc)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or expected.KIND
+        reason = "non-finite" if "finite" in first["msg"] else "invalid"
+        if "shape" in first["msg"] or "dtype" in first["msg"] or "bytes" in first["msg"]:
+            reason = "shape"
+        raise ProtocolError(reason, f"{expected.KIND}.{where}: {first['msg']}") from None
