@@ -7,13 +7,15 @@ are alive, then starts the world. It records every learner's ``Metrics`` into
 or when a service fails) stops the rest and writes ``RUN_DIR/summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
-``summary.json``, ``groundtruth.png``, ``models/robot-<id>.pt``, ``maps/robot-<id>-mean.png``,
-``logs/<service>-<id>.log``.
+``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
+``models/robot-<id>.pt``, ``maps/robot-<id>-mean.png``, ``data/robot-<id>.npz`` (training
+points), ``logs/<service>-<id>.log``.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import os
@@ -22,10 +24,12 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-from swarmmap.shared.atomic import atomic_write_text, save_png
+import numpy as np
+
+from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, ZenohSettings
 from swarmmap.shared.protocol import Keys, Metrics, WorldMap
@@ -174,7 +178,7 @@ class Launcher:
                 self.wait_alive(bus, "world", {"0"})
                 world = bus.query(self.keys.world_map(), WorldMap, timeout=30.0, stop=self.stop)
                 if world is not None:
-                    save_png(self.run_dir / "groundtruth.png", world.grid.numpy().astype(float))
+                    save_ground_truth(self.run_dir, world)
                 status = self.watch(recorder)
         except RuntimeError as exc:
             log.error("%s", exc)
@@ -238,6 +242,15 @@ class Launcher:
         }
         atomic_write_text(self.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
         log.info("summary: %s", self.run_dir / "summary.json")
+
+
+def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
+    """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
+    save_png(run_dir / "groundtruth.png", world.grid.numpy().astype(float))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, grid=world.grid.numpy(), resolution=world.resolution, origin=np.asarray(world.origin),
+                        val_points=world.val_points.numpy(), val_labels=world.val_labels.numpy())
+    atomic_write_bytes(run_dir / "groundtruth.npz", buf.getvalue())
 
 
 def tail(path: Path, lines: int = 15) -> str:

@@ -216,48 +216,80 @@ def plan_paths(plan: FloorPlan, robots: int, seed: int, rooms_per_robot: int = 0
     """One waypoint path (K, 2) per robot: a depth-first tour through doors from a start room.
 
     Start rooms are spread over the plan; each robot visits ``rooms_per_robot`` rooms (0: about
-    twice the plan's share, so that the tours overlap and together cover every room). Doors are
-    crossed straight, between points ``approach`` metres either side of the door.
+    twice the plan's share, so that tours overlap), preferring rooms no teammate has visited;
+    a room that no tour reached is then added to the tour that ends closest to it, so the team
+    covers every reachable room. Doors are crossed straight, between points ``approach`` metres
+    either side of the door.
     """
     n = len(plan.rooms)
     k = rooms_per_robot or min(n, max(2, math.ceil(2 * n / robots)))
-    adjacency: dict[int, list[Door]] = {i: [] for i in range(n)}
+    door_between: dict[tuple[int, int], Door] = {}
+    adjacency: dict[int, list[int]] = {i: [] for i in range(n)}
     for d in plan.doors:
-        adjacency[d.a].append(d)
-        adjacency[d.b].append(d)
+        if (d.a, d.b) not in door_between:
+            door_between[(d.a, d.b)] = door_between[(d.b, d.a)] = d
+            adjacency[d.a].append(d.b)
+            adjacency[d.b].append(d.a)
     rng = np.random.default_rng(seed + 7919)
-    paths = []
+    covered: set[int] = set()
+    walks: list[list[int]] = []
     for r in range(robots):
         start = (r * n // robots) % n if robots <= n else r % n
-        cx, cy = plan.rooms[start].centre
-        offset = 0.3 * (r // n) if robots > n else 0.0  # robots sharing a room start apart
-        points = [(cx + offset, cy)]
-        visited = {start}
-        stack = [start]
-
-        def cross(door: Door, frm: int) -> tuple[tuple[float, float], tuple[float, float]]:
-            sign = 1.0 if door.a == frm else -1.0
-            (x, y), (nx, ny) = door.centre, door.normal
-            return (x - sign * nx * approach, y - sign * ny * approach), (x + sign * nx * approach, y + sign * ny * approach)
-
+        walk, visited, stack = [start], {start}, [start]
         while stack and len(visited) < k:
-            here = stack[-1]
-            options = [d for d in adjacency[here] if (d.b if d.a == here else d.a) not in visited]
+            options = [b for b in adjacency[stack[-1]] if b not in visited]
             if options:
-                door = options[rng.integers(len(options))]
-                nxt = door.b if door.a == here else door.a
-                points.extend(cross(door, here))
-                points.append(plan.rooms[nxt].centre)
+                fresh = [b for b in options if b not in covered] or options
+                nxt = fresh[rng.integers(len(fresh))]
                 visited.add(nxt)
                 stack.append(nxt)
+                walk.append(nxt)
             else:
                 stack.pop()
-                if stack:  # walk back through the door we came by
-                    back = next(d for d in adjacency[here] if {d.a, d.b} == {here, stack[-1]})
-                    points.extend(cross(back, here))
-                    points.append(plan.rooms[stack[-1]].centre)
+                if stack:
+                    walk.append(stack[-1])  # walk back through the door we came by
+        covered |= visited
+        walks.append(walk)
+    for room in range(n):
+        if room in covered:
+            continue
+        routes = [_route(adjacency, w[-1], room) for w in walks]
+        best = min((len(rt), i) for i, rt in enumerate(routes) if rt is not None) if any(routes) else None
+        if best is None:
+            continue  # unreachable from every start: nobody can map it
+        walks[best[1]].extend(routes[best[1]][1:])
+        covered |= set(routes[best[1]])
+    paths = []
+    for r, walk in enumerate(walks):
+        cx, cy = plan.rooms[walk[0]].centre
+        offset = 0.3 * (r // n) if robots > n else 0.0  # robots sharing a start room start apart
+        points = [(cx + offset, cy)]
+        for here, nxt in zip(walk, walk[1:]):
+            door = door_between[(here, nxt)]
+            sign = 1.0 if door.a == here else -1.0
+            (x, y), (nx, ny) = door.centre, door.normal
+            points.append((x - sign * nx * approach, y - sign * ny * approach))
+            points.append((x + sign * nx * approach, y + sign * ny * approach))
+            points.append(plan.rooms[nxt].centre)
         paths.append(np.asarray(points, dtype=np.float64))
     return paths
+
+
+def _route(adjacency: dict[int, list[int]], a: int, b: int) -> list[int] | None:
+    """Shortest room sequence from ``a`` to ``b`` (breadth-first), or None."""
+    prev = {a: a}
+    todo = [a]
+    for here in todo:
+        if here == b:
+            out = [b]
+            while out[-1] != a:
+                out.append(prev[out[-1]])
+            return out[::-1]
+        for nxt in adjacency[here]:
+            if nxt not in prev:
+                prev[nxt] = here
+                todo.append(nxt)
+    return None
 
 
 def path_length(path: np.ndarray) -> float:

@@ -73,9 +73,20 @@ def get_flat(model: nn.Module) -> torch.Tensor:
     return nn.utils.parameters_to_vector(model.parameters()).detach().clone()
 
 
+@torch.no_grad()
 def set_flat(model: nn.Module, flat: torch.Tensor) -> None:
-    """Load a flat vector into the model's parameters."""
-    nn.utils.vector_to_parameters(flat.to(next(model.parameters()).device, torch.float32), model.parameters())
+    """Copy a flat vector into the model's parameters.
+
+    Copies, unlike ``torch.nn.utils.vector_to_parameters``, which makes the parameters views of
+    ``flat``: training would then write into the caller's array (a neighbour's State, say).
+    """
+    offset = 0
+    for p in model.parameters():
+        n = p.numel()
+        p.copy_(flat[offset : offset + n].view_as(p))
+        offset += n
+    if offset != flat.numel():
+        raise ValueError(f"flat vector has {flat.numel()} values, the model {offset} parameters")
 
 
 def param_count(model: nn.Module) -> int:

@@ -32,7 +32,8 @@ def beam_samples(position: np.ndarray, angles: np.ndarray, ranges: np.ndarray, h
     hit = np.asarray(hit, dtype=bool)
     dirs = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # (B, 2)
     t = np.linspace(0.0, max_range, samples_per_beam) if samples_per_beam > 1 else np.zeros(1)
-    keep = t[None, :] < ranges[:, None]  # (B, S)
+    # Free up to the hit; a beam with no return is free over its whole length.
+    keep = (t[None, :] < ranges[:, None]) | (~hit[:, None] & (t[None, :] <= ranges[:, None]))  # (B, S)
     free = position[:, None, :] + t[None, :, None] * dirs[:, None, :]  # (B, S, 2)
     free_pts = free[keep]
     occ_pts = position + (ranges[hit] + occupied_depth)[:, None] * dirs[hit]

@@ -8,11 +8,13 @@ Run-book: ``swarmmap learner --robot I --config RUN_DIR/config.yaml``. Order of 
 3. collect points until its robot's traversal ends (offline training, as in the paper);
 4. wait for its neighbours to be alive, then run Algorithm 1 for ``rounds`` rounds with
    DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds and at the end;
-5. write ``RUN_DIR/models/robot-<I>.pt`` and ``RUN_DIR/maps/robot-<I>-mean.png``.
+5. write ``RUN_DIR/models/robot-<I>.pt``, ``RUN_DIR/maps/robot-<I>-mean.png`` and its training
+   points ``RUN_DIR/data/robot-<I>.npz``.
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import queue
@@ -25,7 +27,7 @@ import torch
 from swarmmap.services.learner.dinno import DinnoNode, consensus_error, validation_bce
 from swarmmap.services.learner.exchange import ExchangeStats, PeerFailure, run_algorithm1
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
-from swarmmap.shared.atomic import save_png
+from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
 from swarmmap.shared.floorplan import OccupancyGrid
@@ -159,15 +161,18 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
         if cfg.run_dir is not None:
-            write_outputs(cfg, robot, node.model, world)
+            write_outputs(cfg, robot, node.model, world, points, labels)
         # Stay until every neighbour has its final State from us (they linger likewise).
         stop.wait(0.5)
     return 0
 
 
-def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap) -> None:
-    """The model checkpoint and its mean map PNG, written atomically."""
+def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap, points: np.ndarray, labels: np.ndarray) -> None:
+    """The model checkpoint, its mean map PNG and the robot's training points, written atomically."""
     run_dir = cfg.run_dir
+    buf = io.BytesIO()
+    np.savez_compressed(buf, points=points, labels=labels)
+    atomic_write_bytes(run_dir / "data" / f"robot-{robot}.npz", buf.getvalue())
     save_model(model, run_dir / "models" / f"robot-{robot}.pt", robot=robot, rounds=cfg.learner.rounds,
                run_id=cfg.run_id)
     grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))

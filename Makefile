@@ -1,0 +1,27 @@
+# swarmmap: `make run` sets up and runs the demo, `make test` sets up and runs the tests.
+PYTHON ?= python3
+VENV ?= .venv
+# The torch build to install when the venv has none (CPU-only machines: the 2.13.0 CPU wheel;
+# `make setup TORCH=torch` takes whatever PyPI offers, e.g. a CUDA build).
+TORCH ?= torch==2.13.0
+BIN := $(VENV)/bin
+RUN_ARGS ?=
+
+.PHONY: setup run test clean
+
+$(BIN)/swarmmap: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install --quiet "$(TORCH)"
+	$(BIN)/pip install --quiet -e '.[test]'
+	@touch $@
+
+setup: $(BIN)/swarmmap
+
+run: setup
+	$(BIN)/swarmmap up --preset demo $(RUN_ARGS)
+
+test: setup
+	$(BIN)/python -m pytest -ra
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,46 @@
+"""Shared fixtures: free loopback ports, Zenoh settings for isolated test sessions, kit data."""
+
+from __future__ import annotations
+
+import socket
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from swarmmap.shared.config import ZenohSettings
+
+REPO = Path(__file__).resolve().parents[1]
+KIT_DATA = REPO.parent / "shared" / "data"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float, interval: float = 0.05) -> bool:
+    """Poll ``predicate`` until it holds or ``timeout`` passes (no fixed sleeps in tests)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return predicate()
+
+
+@pytest.fixture
+def run_id() -> str:
+    return "t" + uuid.uuid4().hex[:10]
+
+
+@pytest.fixture
+def zenoh_pair() -> tuple[ZenohSettings, ZenohSettings]:
+    """Settings for two peers on loopback: one listens on a free port, the other connects to it."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    a = ZenohSettings(mode="peer", listen=[endpoint], multicast_scouting=False)
+    b = ZenohSettings(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], multicast_scouting=False)
+    return a, b

@@ -1,0 +1,127 @@
+"""End to end: ``swarmmap up`` launches every service as its own process on loopback and
+leaves a complete run directory; ``status`` sees the live services; Ctrl-C stops everything."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from swarmmap.shared.config import RunConfig
+from swarmmap.shared.models import load_model, predict
+from swarmmap.services.world import build_plan
+from tests.conftest import wait_until
+
+pytestmark = pytest.mark.e2e
+SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
+
+
+def clean_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("smoke") / "run"
+    proc = subprocess.run([*SWARMMAP, "up", "--robots", "3", "--rounds", "20", "--preset", "smoke",
+                           "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=300, env=clean_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return run_dir, proc
+
+
+def test_every_learner_ran_as_its_own_process(smoke_run):
+    run_dir, _ = smoke_run
+    summary = json.loads((run_dir / "summary.json").read_text())
+    learners = summary["learners"]
+    assert sorted(learners) == ["0", "1", "2"]
+    pids = {v["pid"] for v in learners.values()}
+    assert len(pids) == 3 and os.getpid() not in pids
+    for v in learners.values():
+        assert v["reported_pid"] == v["pid"], "the Metrics did not come from the launched process"
+        assert v["exit_code"] == 0 and v["finished"] and v["rounds"] == 20
+    assert {"router-0", "world-0", "lidar-0", "lidar-1", "lidar-2"} <= summary["services"].keys()
+    assert len({s["pid"] for s in summary["services"].values()}) == len(summary["services"])
+
+
+def test_validation_loss_fell_for_every_robot(smoke_run):
+    run_dir, _ = smoke_run
+    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
+    assert {"robot", "round", "wall_time_s", "val_bce", "consensus_error", "bytes_sent",
+            "bytes_received"} <= rows[0].keys()
+    for robot in "012":
+        mine = sorted((r for r in rows if r["robot"] == robot), key=lambda r: int(r["round"]))
+        assert [int(r["round"]) for r in mine] == [0, 5, 10, 15, 20]
+        assert float(mine[-1]["val_bce"]) < float(mine[0]["val_bce"])
+        assert int(mine[-1]["bytes_sent"]) > 0 and int(mine[-1]["bytes_received"]) > 0
+    summary = json.loads((run_dir / "summary.json").read_text())
+    for v in summary["learners"].values():
+        assert v["final_val_bce"] < v["first_val_bce"]
+
+
+def test_run_directory_is_complete_and_maps_show_the_plan(smoke_run):
+    run_dir, _ = smoke_run
+    cfg = RunConfig.model_validate(yaml.safe_load((run_dir / "config.yaml").read_text()))
+    assert cfg.robots == 3 and cfg.learner.rounds == 20 and cfg.preset == "smoke"
+    assert Image.open(run_dir / "groundtruth.png").mode == "L"
+    grid = build_plan(cfg).occupancy(cfg.learner.map_resolution_m)
+    room_centres = np.array([r.centre for r in build_plan(cfg).rooms])
+    for robot in range(3):
+        img = np.asarray(Image.open(run_dir / "maps" / f"robot-{robot}-mean.png"))
+        assert img.ndim == 2 and img.size > 100
+        model = load_model(run_dir / "models" / f"robot-{robot}.pt")
+        # Rooms read free, the exterior walls read occupied.
+        assert (predict(model, room_centres) < 0.5).all()
+        x0, y0, x1, y1 = build_plan(cfg).bounds
+        walls = np.array([[x0, (y0 + y1) / 2], [x1, (y0 + y1) / 2], [(x0 + x1) / 2, y0], [(x0 + x1) / 2, y1]])
+        assert (predict(model, walls) > 0.5).all()
+        # The map agrees with the ground truth on most cells inside the plan.
+        pts, _ = grid.centres(cfg.learner.map_resolution_m)
+        inside = (pts[:, 0] > x0) & (pts[:, 0] < x1) & (pts[:, 1] > y0) & (pts[:, 1] < y1)
+        agree = (predict(model, pts[inside]) > 0.5) == grid.occupied(pts[inside])
+        assert agree.mean() > 0.8
+
+
+def start_up(run_dir: Path, rounds: int) -> subprocess.Popen:
+    return subprocess.Popen([*SWARMMAP, "up", "--preset", "smoke", "--rounds", str(rounds), "--run-dir",
+                             str(run_dir)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=clean_env())
+
+
+def test_status_lists_live_services_and_ctrl_c_stops_everything(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = start_up(run_dir, rounds=100000)
+    try:
+        out = {"text": ""}
+
+        def status_shows_learners() -> bool:
+            if not (run_dir / "config.yaml").exists():
+                return False
+            res = subprocess.run([*SWARMMAP, "status", "--config", str(run_dir / "config.yaml"), "--window", "1"],
+                                 capture_output=True, text=True, timeout=60, env=clean_env())
+            out["text"] = res.stdout
+            return all(f"learner    {i}" in res.stdout for i in range(3)) and "state" in res.stdout
+
+        assert wait_until(status_shows_learners, 120, interval=0.5), out["text"]
+        assert "lidar" in out["text"] and "router" in out["text"] and "world" in out["text"]
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 130
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    for name, service in summary["services"].items():
+        assert service["exit_code"] is not None, f"{name} was left running"
+        with pytest.raises(ProcessLookupError):
+            os.kill(service["pid"], 0)
+    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
+    assert rows, "metrics written before the interrupt were lost"

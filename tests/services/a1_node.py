@@ -1,0 +1,39 @@
+"""Helper process for test_zenoh_exchange: one Algorithm 1 node over a real Zenoh session.
+
+Usage: python a1_node.py NODE ROUNDS RUN_ID ZENOH_SETTINGS_JSON OUT.npy
+"""
+
+import json
+import sys
+import threading
+
+import numpy as np
+
+from swarmmap.services.learner.exchange import run_algorithm1
+from swarmmap.services.learner.zenoh_transport import ZenohTransport
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.config import ZenohSettings
+from swarmmap.shared.protocol import Keys
+
+
+def update(node):
+    def f(k, theta, peers):
+        return ((theta + sum(peers.values())) / (1 + len(peers)) + 0.01 * (k + 1) * (node + 1)).astype(np.float32)
+    return f
+
+
+def main():
+    node, rounds, run, settings, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5]
+    peers = {0, 1} - {node}
+    with Bus.open(ZenohSettings.model_validate(json.loads(settings)), Keys("swarmmap", run), "learner", node) as bus:
+        transport = ZenohTransport(bus, node, peers, 4)
+        bus.announce()
+        assert not bus.wait_alive("learner", {str(j) for j in peers}, 30.0)
+        theta = np.full(4, float(node), np.float32)
+        final = run_algorithm1(node, peers, rounds, theta, update(node), transport, peer_timeout=30,
+                               stop=threading.Event())
+        np.save(out, final)
+
+
+if __name__ == "__main__":
+    main()

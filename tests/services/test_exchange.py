@@ -1,0 +1,140 @@
+"""Algorithm 1 over the in-memory transport: rounds never mix, delays and reordering change
+nothing, dead or silent peers are named."""
+
+from __future__ import annotations
+
+import random
+import threading
+
+import numpy as np
+import pytest
+
+from swarmmap.services.learner.exchange import (Envelope, ExchangeStats, MemoryHub, PeerFailure, run_algorithm1)
+
+COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
+RING4 = {0: {1, 3}, 1: {0, 2}, 2: {1, 3}, 3: {2, 0}}
+
+
+def mixing_update(node: int):
+    """A deterministic node update that depends on the round and on exactly which peer states it got."""
+
+    def update(k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        return (theta + sum(peers.values())) / (1 + len(peers)) + 0.01 * (k + 1) * (node + 1)
+
+    return update
+
+
+def reference(graph, rounds, init):
+    """The synchronous in-process loop: every node updates from everyone's round-k state."""
+    thetas = dict(init)
+    for k in range(rounds):
+        thetas = {i: mixing_update(i)(k, thetas[i], {j: thetas[j] for j in sorted(graph[i])}) for i in graph}
+    return thetas
+
+
+def run_threads(graph, rounds, init, delay=None, **kw):
+    hub = MemoryHub(graph, delay)
+    results, errors = {}, {}
+
+    def node(i):
+        try:
+            results[i] = run_algorithm1(i, graph[i], rounds, init[i], mixing_update(i), hub.transport(i),
+                                        peer_timeout=kw.get("peer_timeout", 20), resend_after=0.2, linger=0.5)
+        except Exception as exc:  # collected and re-raised by the test
+            errors[i] = exc
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    return results, errors
+
+
+@pytest.mark.parametrize("graph", [COMPLETE3, RING4], ids=["complete", "ring"])
+def test_matches_the_synchronous_reference(graph):
+    init = {i: np.full(4, float(i)) for i in graph}
+    results, errors = run_threads(graph, 12, init)
+    assert not errors
+    ref = reference(graph, 12, init)
+    for i in graph:
+        np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
+
+
+def test_random_delays_and_reordering_change_nothing():
+    rng = random.Random(3)
+    lock = threading.Lock()
+
+    def delay(sender, receiver, env):
+        with lock:
+            return rng.choice([0.0, 0.0, 0.01, 0.03, 0.06])
+
+    init = {i: np.full(3, float(i) ** 2) for i in RING4}
+    results, errors = run_threads(RING4, 15, init, delay)
+    assert not errors
+    ref = reference(RING4, 15, init)
+    for i in RING4:
+        np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
+
+
+def test_future_state_is_buffered_and_stale_messages_ignored():
+    """Feed one node a scripted stream: an early round-1 State, duplicates and stale messages."""
+
+    class Scripted:
+        def __init__(self, msgs):
+            self.msgs = list(msgs)
+            self.sent = []
+
+        def send_state(self, r, p):
+            self.sent.append(("state", r))
+
+        def send_round_complete(self, r):
+            self.sent.append(("complete", r))
+
+        def receive(self, timeout):
+            return self.msgs.pop(0) if self.msgs else None
+
+        def lost_peers(self):
+            return set()
+
+    seen = []
+
+    def update(k, theta, peers):
+        seen.append((k, {j: float(v[0]) for j, v in peers.items()}))
+        return theta + 1
+
+    t = Scripted([
+        Envelope("state", 1, 1, np.array([11.0])),  # from the future: kept for round 1
+        Envelope("state", 1, 0, np.array([10.0])),
+        Envelope("state", 1, 0, np.array([99.0])),  # duplicate of round 0 after the update: ignored
+        Envelope("complete", 1, 0),
+        Envelope("complete", 1, 0),  # stale duplicate
+        Envelope("state", 1, 0, np.array([98.0])),  # stale
+        Envelope("complete", 1, 1),
+    ])
+    out = run_algorithm1(0, {1}, 2, np.array([0.0]), update, t, linger=0)
+    assert seen == [(0, {1: 10.0}), (1, {1: 11.0})]
+    assert out[0] == 2.0
+    assert t.sent == [("state", 0), ("complete", 0), ("state", 1), ("complete", 1), ("state", 2)]
+
+
+def test_node_without_neighbours_trains_alone():
+    hub = MemoryHub({0: set()})
+    stats = ExchangeStats()
+    out = run_algorithm1(0, set(), 5, np.zeros(2), lambda k, th, p: th + 1, hub.transport(0), stats=stats, linger=0)
+    assert out.tolist() == [5.0, 5.0] and stats.rounds_done == 5
+
+
+def test_silent_peer_is_named_after_timeout():
+    hub = MemoryHub({0: {1}, 1: {0}})
+    with pytest.raises(PeerFailure, match=r"neighbour\(s\) \[1\]"):
+        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, hub.transport(0), peer_timeout=0.5,
+                       resend_after=0.1)
+
+
+def test_lost_peer_is_named():
+    hub = MemoryHub({0: {1}, 1: {0}})
+    transport = hub.transport(0)
+    transport.lost_peers = lambda: {1}
+    with pytest.raises(PeerFailure, match="left during round 0"):
+        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, transport, peer_timeout=30, resend_after=0.1)

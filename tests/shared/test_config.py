@@ -1,0 +1,91 @@
+"""Config precedence (defaults < preset < file < environment < command line) and refusals."""
+
+from __future__ import annotations
+
+import pytest
+
+from swarmmap.services.cli import build_parser
+from swarmmap.shared.config import PRESETS, ConfigError, RunConfig, config_from_args, resolve
+
+
+def load(argv, environ=None, preset=None) -> RunConfig:
+    return config_from_args(build_parser().parse_args(argv), environ=environ or {}, preset=preset)
+
+
+def test_defaults_validate():
+    cfg = resolve(environ={})
+    assert cfg.learner.rounds == 200 and cfg.zenoh.mode is None
+
+
+def test_precedence_file_env_cli(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("seed: 1\nlearner:\n  rounds: 11\n  batch_size: 100\n  lr_start: 0.5\n")
+    env = {"SWARMMAP_LEARNER__ROUNDS": "22", "SWARMMAP_LEARNER__BATCH_SIZE": "200", "SWARMMAP_SEED": "2"}
+    cfg = load(["learner", "--config", str(f), "--rounds", "33"], env)
+    assert cfg.learner.rounds == 33  # CLI beats env and file
+    assert cfg.learner.batch_size == 200  # env beats file
+    assert cfg.learner.lr_start == 0.5  # file beats defaults
+    assert cfg.seed == 2
+
+
+def test_preset_sits_under_the_file(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("learner:\n  rounds: 7\n")
+    cfg = load(["up", "--preset", "smoke", "--config", str(f)])
+    assert cfg.learner.rounds == 7
+    assert cfg.robots == PRESETS["smoke"]["robots"]
+    assert cfg.preset == "smoke"
+
+
+def test_zenoh_settings_from_cli_and_set():
+    cfg = load(["world", "--zenoh-mode", "client", "--zenoh-connect", "tcp/127.0.0.1:7447",
+                "--no-zenoh-multicast-scouting", "--set", "world.lidar_beams=90"])
+    assert cfg.zenoh.mode == "client" and cfg.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    assert cfg.zenoh.multicast_scouting is False and cfg.world.lidar_beams == 90
+
+
+def test_wrong_choice_names_field_and_allowed_values():
+    with pytest.raises(ConfigError) as info:
+        load(["learner", "--optimizer", "adan"])
+    assert "learner.optimizer" in info.value.message
+    assert "'adam', 'adamw' or 'sgd'" in info.value.message and "adan" in info.value.message
+
+
+def test_wrong_number_and_unknown_field_in_file(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("learner:\n  roundz: 3\n  rounds: -1\n")
+    with pytest.raises(ConfigError) as info:
+        load(["learner", "--config", str(f)])
+    assert "learner.roundz" in info.value.message and "learner.rounds" in info.value.message
+
+
+def test_bad_env_value_is_named():
+    with pytest.raises(ConfigError) as info:
+        load(["learner"], {"SWARMMAP_LEARNER__BATCH_SIZE": "many"})
+    assert "learner.batch_size" in info.value.message
+
+
+def test_unknown_preset_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="unknown preset 'huge'"):
+        load(["up", "--preset", "huge"])
+    with pytest.raises(ConfigError, match="does not exist"):
+        load(["up", "--config", str(tmp_path / "nope.yaml")])
+
+
+def test_run_id_cannot_inject_key_wildcards():
+    with pytest.raises(ConfigError, match="run_id"):
+        load(["world", "--run-id", "a/*"])
+
+
+def test_dumped_config_loads_back(tmp_path):
+    cfg = load(["up", "--preset", "smoke", "--seed", "5"])
+    f = tmp_path / "config.yaml"
+    f.write_text(cfg.dump_yaml())
+    assert load(["learner", "--config", str(f)]) == cfg
+
+
+def test_cli_exits_2_with_message(capsys):
+    from swarmmap.services.cli import main
+
+    assert main(["world", "--set", "world.lidar_beams=0"]) == 2
+    assert "world.lidar_beams" in capsys.readouterr().err

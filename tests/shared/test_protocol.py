@@ -1,0 +1,138 @@
+"""The wire codec: round trips, and every kind of bad payload is refused with its reason."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from swarmmap.shared.protocol import (Keys, Metrics, ProtocolError, RoundComplete, Samples, Scan, State, Tensor,
+                                      WorldMap, decode, encode)
+
+RUN = "run-1"
+
+
+def state(**over) -> State:
+    fields = dict(run=RUN, sender=2, round=7, params=Tensor.of(np.arange(5, dtype=np.float32)))
+    fields.update(over)
+    return State(**fields)
+
+
+def raw(message) -> dict:
+    return message.model_dump(mode="python")
+
+
+def test_state_round_trip_preserves_params_bit_for_bit():
+    params = np.random.default_rng(0).standard_normal(1000).astype(np.float32)
+    msg = State(run=RUN, sender=1, round=3, params=Tensor.of(params))
+    back = decode(encode(msg), State, run=RUN, sender=1)
+    assert back.round == 3 and back.sender == 1
+    assert back.params.numpy().tobytes() == params.tobytes()
+
+
+def test_tensor_bytes_are_little_endian_float32():
+    t = Tensor.of(np.array([1.0], dtype=">f4"))
+    assert t.dtype == "<f4" and t.data == np.float32(1.0).tobytes()  # this test machine is little-endian
+
+
+@pytest.mark.parametrize("message", [
+    RoundComplete(run=RUN, sender=0, round=0),
+    Metrics(run=RUN, sender=1, round=5, wall_time_s=1.5, val_bce=0.3, consensus_error=0.01, bytes_sent=10,
+            bytes_received=20, pid=42, final=True),
+    Scan(run=RUN, sender=0, seq=1, t=0.5, pose=[1.0, 2.0, 0.1], max_range=3.5,
+         angles=Tensor.of(np.zeros(4, np.float32)), ranges=Tensor.of(np.ones(4, np.float32)),
+         hit=Tensor.of(np.ones(4, np.uint8))),
+    Samples(run=RUN, sender=0, seq=1, t=0.5, position=[0.0, 0.0], points=Tensor.of(np.zeros((3, 2), np.float32)),
+            labels=Tensor.of(np.array([0, 1, 0], np.float32)), last=True),
+    WorldMap(run=RUN, sender=0, resolution=0.1, origin=[0.0, 0.0], grid=Tensor.of(np.eye(3, dtype=np.uint8)),
+             val_points=Tensor.of(np.zeros((2, 2), np.float32)), val_labels=Tensor.of(np.zeros(2, np.float32)),
+             robots=3),
+])
+def test_every_message_kind_round_trips(message):
+    assert decode(encode(message), type(message), run=RUN) == message
+
+
+def refused(payload: bytes, expected=State, **kw) -> str:
+    with pytest.raises(ProtocolError) as info:
+        decode(payload, expected, run=kw.pop("run", RUN), **kw)
+    return info.value.reason
+
+
+def test_refuses_garbage():
+    assert refused(b"\xc1\xff\x00not msgpack") == "malformed"
+    assert refused(msgpack.packb([1, 2, 3])) == "malformed"
+
+
+def test_refuses_oversized_before_decoding():
+    assert refused(encode(state()), max_bytes=10) == "oversized"
+
+
+def test_refuses_another_run():
+    assert refused(encode(state()), run="other-run") == "wrong-run"
+
+
+def test_refuses_sender_that_does_not_match_its_key():
+    assert refused(encode(state(sender=2)), sender=3) == "unknown-sender"
+
+
+def test_refuses_other_schema_version_and_kind():
+    doc = raw(state())
+    doc["v"] = 2
+    assert refused(msgpack.packb(doc)) == "version"
+    assert refused(encode(RoundComplete(run=RUN, sender=2, round=1))) == "kind"
+
+
+def test_refuses_wrong_dtype():
+    doc = raw(state())
+    doc["params"] = raw(Tensor.of(np.arange(5, dtype=np.float64)))
+    assert refused(msgpack.packb(doc)) == "shape"
+
+
+def test_refuses_wrong_shape():
+    doc = raw(state())
+    doc["params"] = raw(Tensor.of(np.zeros((2, 2), np.float32)))
+    assert refused(msgpack.packb(doc)) == "shape"
+
+
+def test_refuses_data_length_that_does_not_match_shape():
+    doc = raw(state())
+    doc["params"]["shape"] = [6]
+    assert refused(msgpack.packb(doc)) == "shape"
+
+
+def test_refuses_non_finite_params_and_values():
+    doc = raw(state())
+    doc["params"]["data"] = np.array([0, 1, np.nan, 3, 4], np.float32).tobytes()
+    assert refused(msgpack.packb(doc)) == "non-finite"
+    m = raw(Metrics(run=RUN, sender=1, round=5, wall_time_s=1.5, val_bce=0.3, consensus_error=0.0,
+                    bytes_sent=0, bytes_received=0))
+    m["val_bce"] = float("inf")
+    assert refused(msgpack.packb(m), Metrics) == "non-finite"
+
+
+def test_refuses_unknown_fields_and_pickle_like_extensions():
+    doc = raw(state())
+    doc["extra"] = 1
+    assert refused(msgpack.packb(doc)) == "invalid"
+    assert refused(msgpack.packb(msgpack.ExtType(1, b"x"))) == "malformed"
+
+
+def test_refuses_labels_outside_unit_interval():
+    s = Samples(run=RUN, sender=0, seq=0, t=0, position=[0, 0], points=Tensor.of(np.zeros((1, 2), np.float32)),
+                labels=Tensor.of(np.zeros(1, np.float32)))
+    doc = raw(s)
+    doc["labels"] = raw(Tensor.of(np.array([2.0], np.float32)))
+    assert refused(msgpack.packb(doc), Samples) == "invalid"
+
+
+def test_keys_are_built_under_prefix_and_run_and_refuse_wildcards():
+    keys = Keys("swarmmap", "r1")
+    assert keys.state(3) == "swarmmap/r1/learners/3/state"
+    assert keys.round_complete(3) == "swarmmap/r1/learners/3/round-complete"
+    assert keys.samples(0) == "swarmmap/r1/robots/0/samples"
+    assert keys.world_map() == "swarmmap/r1/world/map"
+    assert keys.parse_alive(keys.alive("learner", 4)) == ("learner", "4")
+    assert keys.ident_of(keys.metrics(12)) == 12
+    for bad in ("a/b", "*", "$x", "**", ""):
+        with pytest.raises(ValueError):
+            Keys("swarmmap", bad)
