@@ -68,13 +68,13 @@ def main(argv: list[str] | None = None) -> int:
         print(exc.message, file=sys.stderr)
         return 2
     log = setup_logging(cfg.log_level, args.command)
-    if args.command == "status":
-        from swarmmap.services.status import report
-
-        print(report(cfg, args.window))
-        return 0
     stop = shutdown_event()
     try:
+        if args.command == "status":
+            from swarmmap.services.status import report
+
+            print(report(cfg, args.window))
+            return 0
         return _runner(args.command)(cfg, stop)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)

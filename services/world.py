@@ -10,7 +10,6 @@ scan has ``last`` set). Afterwards it keeps serving the map until stopped.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ import trimesh
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, WorldSettings
-from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, plan_paths, point_along, procedural, path_length
+from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, path_length, plan_paths, point_along, procedural
 from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
 from swarmmap.shared.sensing import beam_angles, validation_set
 

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
-from swarmmap.shared.config import ZenohSettings
+from swarmmap.shared.config import ConfigError, ZenohSettings
 from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, decode, encode
 
 log = logging.getLogger(__name__)
@@ -103,8 +103,15 @@ class Bus:
 
     @classmethod
     def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0) -> Bus:
-        """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``."""
-        session = zenoh.open(zenoh_config(settings))
+        """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``.
+
+        A config file Zenoh cannot read or an endpoint it cannot use raises ConfigError."""
+        try:
+            session = zenoh.open(zenoh_config(settings))
+        except zenoh.ZError as exc:
+            given = settings.model_dump(exclude_defaults=True, mode="json")
+            raise ConfigError(f"config error:\n  zenoh: cannot open a session with {given or 'the defaults'}: "
+                              f"{str(exc).split(' at /')[0]}") from None
         return cls(session, keys, service, ident)
 
     def __enter__(self) -> Bus:

@@ -13,10 +13,9 @@ import threading
 
 import numpy as np
 
+from swarmmap.services.learner.exchange import Envelope
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, Tensor
-
-from swarmmap.services.learner.exchange import Envelope
 
 
 class ZenohTransport:

@@ -9,7 +9,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +16,9 @@ import pytest
 import yaml
 from PIL import Image
 
+from swarmmap.services.world import build_plan
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.models import load_model, predict
-from swarmmap.services.world import build_plan
 from tests.conftest import wait_until
 
 pytestmark = pytest.mark.e2e
@@ -73,17 +72,18 @@ def test_run_directory_is_complete_and_maps_show_the_plan(smoke_run):
     cfg = RunConfig.model_validate(yaml.safe_load((run_dir / "config.yaml").read_text()))
     assert cfg.robots == 3 and cfg.learner.rounds == 20 and cfg.preset == "smoke"
     assert Image.open(run_dir / "groundtruth.png").mode == "L"
-    grid = build_plan(cfg).occupancy(cfg.learner.map_resolution_m)
-    room_centres = np.array([r.centre for r in build_plan(cfg).rooms])
+    plan = build_plan(cfg)
+    grid = plan.occupancy(cfg.learner.map_resolution_m)
+    room_centres = np.array([r.centre for r in plan.rooms])
+    exterior = np.array([w.centre for w in plan.walls[:4]])  # the four outer walls come first
     for robot in range(3):
         img = np.asarray(Image.open(run_dir / "maps" / f"robot-{robot}-mean.png"))
         assert img.ndim == 2 and img.size > 100
         model = load_model(run_dir / "models" / f"robot-{robot}.pt")
         # Rooms read free, the exterior walls read occupied.
         assert (predict(model, room_centres) < 0.5).all()
-        x0, y0, x1, y1 = build_plan(cfg).bounds
-        walls = np.array([[x0, (y0 + y1) / 2], [x1, (y0 + y1) / 2], [(x0 + x1) / 2, y0], [(x0 + x1) / 2, y1]])
-        assert (predict(model, walls) > 0.5).all()
+        assert (predict(model, exterior) > 0.5).all()
+        x0, y0, x1, y1 = plan.bounds
         # The map agrees with the ground truth on most cells inside the plan.
         pts, _ = grid.centres(cfg.learner.map_resolution_m)
         inside = (pts[:, 0] > x0) & (pts[:, 0] < x1) & (pts[:, 1] > y0) & (pts[:, 1] < y1)

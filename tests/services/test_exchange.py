@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from swarmmap.services.learner.exchange import (Envelope, ExchangeStats, MemoryHub, PeerFailure, run_algorithm1)
+from swarmmap.services.learner.exchange import Envelope, ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
 
 COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
 RING4 = {0: {1, 3}, 1: {0, 2}, 2: {1, 3}, 3: {2, 0}}

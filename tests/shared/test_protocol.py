@@ -6,8 +6,19 @@ import msgpack
 import numpy as np
 import pytest
 
-from swarmmap.shared.protocol import (Keys, Metrics, ProtocolError, RoundComplete, Samples, Scan, State, Tensor,
-                                      WorldMap, decode, encode)
+from swarmmap.shared.protocol import (
+    Keys,
+    Metrics,
+    ProtocolError,
+    RoundComplete,
+    Samples,
+    Scan,
+    State,
+    Tensor,
+    WorldMap,
+    decode,
+    encode,
+)
 
 RUN = "run-1"
 
