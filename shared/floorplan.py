@@ -15,6 +15,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+class PlanError(ValueError):
+    """A floor-plan file that cannot be used; the message names the file and the problem."""
+
+    def __init__(self, path: object, problem: str):
+        super().__init__(f"{path}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
 @dataclass(frozen=True)
 class Rect:
     """An axis-aligned rectangle [x0, x1] x [y0, y1] in metres."""
