@@ -38,6 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "up":
             p.add_argument("--rounds", dest="learner.rounds", default=argparse.SUPPRESS,
                            help="communication rounds per learner (learner.rounds)")
+            p.add_argument("--floorplan", dest="world.floorplan", default=argparse.SUPPRESS,
+                           help="procedural, a CubiCasa5K model.svg or a DiNNO .png (world.floorplan)")
+            p.add_argument("--waypoints", dest="world.waypoints", default=argparse.SUPPRESS,
+                           help="folder of .npy waypoint paths, one per robot (world.waypoints)")
+            p.add_argument("--replay-speed", dest="lidar.replay_speed", default=argparse.SUPPRESS,
+                           help="with --replay: multiple of the recorded rate, 0 = as fast as the learners take it")
         if name == "status":
             p.add_argument("--window", type=float, default=2.0, help="seconds to measure message rates over")
     return parser

@@ -32,7 +32,10 @@ import numpy as np
 from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, ZenohSettings
+from swarmmap.shared.floorplan import PlanError
+from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.protocol import Keys, Metrics, WorldMap
+from swarmmap.shared.recording import RecordingError, read_recording
 
 log = logging.getLogger("up")
 
@@ -101,7 +104,13 @@ class Launcher:
         self.router_endpoint = f"tcp/127.0.0.1:{free_port()}"
         zenoh = ZenohSettings(mode="peer", connect=[self.router_endpoint], listen=["tcp/127.0.0.1:0"],
                               multicast_scouting=False)
-        self.cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir, "zenoh": zenoh})
+        cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir, "zenoh": zenoh})
+        if cfg.up.replay is not None:
+            cfg = replay_config(cfg, cfg.up.replay)
+        if cfg.up.record is not None:
+            record = str(cfg.up.record.resolve() / "robot-{robot}.swrec")
+            cfg = cfg.model_copy(update={"lidar": cfg.lidar.model_copy(update={"record": record})})
+        self.cfg = cfg
         self.run_dir = run_dir
         self.keys = Keys(self.cfg.key_prefix, run_id)
         self.children: list[Child] = []
@@ -244,6 +253,29 @@ class Launcher:
         log.info("summary: %s", self.run_dir / "summary.json")
 
 
+def replay_config(cfg: RunConfig, folder: Path) -> RunConfig:
+    """The run's config for replaying the recordings in ``folder``: robots, seed, world and
+    sensor settings come from the recordings; the world only serves the map."""
+    files = sorted(folder.glob("robot-*.swrec"))
+    if not files:
+        raise RecordingError(folder, "no robot-<i>.swrec recordings in this folder")
+    recs = {}
+    for f in files:
+        rec = read_recording(f, allow_incomplete=cfg.lidar.replay_incomplete)
+        recs[rec.robot] = rec
+    if sorted(recs) != list(range(len(recs))):
+        raise RecordingError(folder, f"recordings of robots {sorted(recs)}; expected robots 0..{len(recs) - 1}")
+    recorded = RunConfig.model_validate(recs[0].config)
+    plan = recs[0].header.get("plan", {})
+    if plan.get("sha256") and plan_reference(plan["floorplan"]).get("sha256") != plan["sha256"]:
+        raise RecordingError(folder, f"the recorded floor plan {plan['floorplan']} is missing or has changed since")
+    world = recorded.world.model_copy(update={"drive": False})
+    lidar = recorded.lidar.model_copy(update={"record": None, "robot": None, "replay": str(folder.resolve() / "robot-{robot}.swrec"),
+                                              "replay_speed": cfg.lidar.replay_speed,
+                                              "replay_incomplete": cfg.lidar.replay_incomplete})
+    return cfg.model_copy(update={"robots": len(recs), "seed": recorded.seed, "world": world, "lidar": lidar})
+
+
 def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
     save_png(run_dir / "groundtruth.png", world.grid.numpy().astype(float))
@@ -262,4 +294,9 @@ def tail(path: Path, lines: int = 15) -> str:
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
-    return Launcher(cfg, stop).run()
+    try:
+        launcher = Launcher(cfg, stop)
+    except (RecordingError, PlanError) as exc:
+        log.error("%s", exc)
+        return 2
+    return launcher.run()

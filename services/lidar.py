@@ -1,9 +1,16 @@
-"""A LiDAR streamer: one robot's scans in, labelled training points out.
+"""A LiDAR streamer: one robot's scans in, labelled training points out; live or from a recording.
 
-Run-book: ``swarmmap lidar --robot I --config RUN_DIR/config.yaml``. It subscribes to
-``robots/<I>/scan``, turns each scan into free samples along the beams and an occupied point
-at each hit (:func:`swarmmap.shared.sensing.beam_samples`) and publishes them as ``Samples``
-on ``robots/<I>/samples``; the end of the robot's traversal is passed on as ``last``.
+Run-book: ``swarmmap lidar --robot I --config RUN_DIR/config.yaml``.
+
+- Live: subscribes to ``robots/<I>/scan``, applies the sensor model (Gaussian range noise,
+  dropouts, max-range returns; :func:`swarmmap.shared.sensing.sensor_model`), samples free
+  points along each beam and an occupied point at each hit, and publishes ``Samples`` on
+  ``robots/<I>/samples``; the end of the traversal is passed on as ``last``.
+  ``--record FILE`` also writes the served stream to a recording (see
+  :mod:`swarmmap.shared.recording`), completed when the traversal ends or the streamer stops.
+- Replay: ``--replay FILE`` needs no world: once its learner is alive it serves the
+  recording's points, exactly as recorded, at the recorded rate times ``--replay-speed``
+  (0: as fast as the learner takes them).
 """
 
 from __future__ import annotations
@@ -11,22 +18,42 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
+
+import numpy as np
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
-from swarmmap.shared.protocol import Keys, Samples, Scan, Tensor
-from swarmmap.shared.sensing import beam_samples
+from swarmmap.shared.plans import plan_reference
+from swarmmap.shared.protocol import Keys, ProtocolError, Samples, Scan, Tensor, decode, encode
+from swarmmap.shared.recording import RecordingError, RecordingWriter, read_recording
+from swarmmap.shared.sensing import beam_samples, sensor_model
 
 log = logging.getLogger("lidar")
 
 
-def scan_to_samples(scan: Scan, cfg: RunConfig) -> Samples:
-    """The labelled points of one scan."""
-    pose = scan.pose
-    points, labels = beam_samples(pose[:2], scan.angles.numpy(), scan.ranges.numpy(), scan.hit.numpy().astype(bool),
-                                  scan.max_range, cfg.lidar.samples_per_beam, cfg.lidar.occupied_depth_m)
-    return Samples(run=scan.run, sender=scan.sender, seq=scan.seq, t=scan.t, position=list(pose[:2]),
-                   points=Tensor.of(points, "<f4"), labels=Tensor.of(labels, "<f4"), last=scan.last)
+class SensorModel:
+    """Turns ideal scans into labelled points the way this robot's sensor sees them."""
+
+    def __init__(self, cfg: RunConfig, robot: int):
+        self.cfg = cfg
+        self.rng = np.random.default_rng([cfg.seed, robot, 1])
+
+    def samples(self, scan: Scan) -> Samples:
+        s, w = self.cfg.lidar, self.cfg.world
+        ranges, hit, valid = sensor_model(scan.ranges.numpy(), scan.hit.numpy().astype(bool), self.rng,
+                                          noise_std=s.range_noise_std_m, dropout_prob=s.dropout_prob,
+                                          min_range=w.lidar_min_range_m, max_range=scan.max_range)
+        points, labels = beam_samples(scan.pose[:2], scan.angles.numpy()[valid], ranges[valid], hit[valid], scan.max_range,
+                                      s.samples_per_beam, s.occupied_depth_m, sampling=s.sampling, rng=self.rng,
+                                      free_on_max_range=s.free_on_max_range)
+        return Samples(run=scan.run, sender=scan.sender, seq=scan.seq, t=scan.t, position=list(scan.pose[:2]),
+                       points=Tensor.of(points, "<f4"), labels=Tensor.of(labels, "<f4"), last=scan.last)
+
+
+def robot_file(template: str, robot: int) -> str:
+    """A per-robot file name: ``{robot}`` in ``template`` becomes the id."""
+    return template.replace("{robot}", str(robot))
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
@@ -34,22 +61,84 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     robot = cfg.lidar.robot
     if robot is None or robot >= cfg.robots:
         fail(f"config error:\n  lidar.robot: required, one of 0..{cfg.robots - 1} (got {robot!r})")
+    if cfg.lidar.record and cfg.lidar.replay:
+        fail("config error:\n  lidar.record, lidar.replay: choose one")
+    if cfg.lidar.replay:
+        return replay(cfg, robot, robot_file(cfg.lidar.replay, robot), stop)
+    return live(cfg, robot, stop)
+
+
+def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
     keys = Keys(cfg.key_prefix, cfg.run_id)
     inbox: queue.Queue[Scan] = queue.Queue()
+    model = SensorModel(cfg, robot)
+    recorder = None
+    if cfg.lidar.record:
+        recorder = RecordingWriter(robot_file(cfg.lidar.record, robot), robot, cfg.model_dump(mode="json"),
+                                   plan_reference(cfg.world.floorplan))
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
         out = bus.publisher(keys.samples(robot))
         bus.subscribe(keys.scan(robot), Scan, inbox.put)
         bus.announce()
         count = points = 0
-        while not stop.is_set():
-            try:
-                scan = inbox.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            samples = scan_to_samples(scan, cfg)
-            out.put(samples)
-            count += 1
-            points += samples.labels.shape[0]
-            if scan.last:
-                log.info("robot %d traversal done: %d scans -> %d labelled points", robot, count, points)
+        try:
+            while not stop.is_set():
+                try:
+                    scan = inbox.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                samples = model.samples(scan)
+                payload = encode(samples)
+                out.put_bytes(payload)
+                if recorder is not None:
+                    recorder.add(payload)
+                count += 1
+                points += samples.labels.shape[0]
+                if scan.last:
+                    log.info("robot %d traversal done: %d scans -> %d labelled points", robot, count, points)
+                    if recorder is not None:
+                        log.info("recorded %d frames to %s", count, recorder.close())
+                        recorder = None
+        finally:
+            if recorder is not None:  # stopped before the end: what was served is whole
+                log.info("recorded %d frames to %s (stopped before the traversal ended)", count, recorder.close())
+    return 0
+
+
+def replay(cfg: RunConfig, robot: int, path: str, stop: threading.Event) -> int:
+    try:
+        rec = read_recording(path, allow_incomplete=cfg.lidar.replay_incomplete)
+    except RecordingError as exc:
+        log.error("recording refused: %s", exc)
+        return 2
+    if rec.robot != robot:
+        log.error("recording refused: %s: it holds robot %d, this streamer serves robot %d", path, rec.robot, robot)
+        return 2
+    recorded_run = rec.config.get("run_id", "")
+    messages = []
+    for i, (t, payload) in enumerate(rec.frames):
+        try:
+            msg = decode(payload, Samples, run=recorded_run, sender=robot)
+        except ProtocolError as exc:
+            log.error("recording refused: %s: frame %d: %s", path, i + 1, exc)
+            return 2
+        last = msg.last or i == len(rec.frames) - 1  # an incomplete recording still ends its traversal
+        messages.append((t, msg.model_copy(update={"run": cfg.run_id, "last": last})))
+    keys = Keys(cfg.key_prefix, cfg.run_id)
+    with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
+        out = bus.publisher(keys.samples(robot))
+        bus.announce()
+        if bus.wait_alive("learner", {str(robot)}, cfg.world.wait_for_consumers_s, stop):
+            log.warning("replaying although learner %d is not alive", robot)
+        speed = cfg.lidar.replay_speed
+        start = time.monotonic()
+        for t, msg in messages:
+            if stop.is_set():
+                break
+            if speed > 0 and (ahead := start + t / speed - time.monotonic()) > 0:
+                stop.wait(ahead)
+            out.put(msg)
+        log.info("robot %d: replayed %d frames from %s%s", robot, len(messages), path,
+                 "" if rec.complete else " (incomplete recording)")
+        stop.wait()
     return 0

@@ -1,51 +1,68 @@
 """The world simulator: a floor plan extruded into a pybullet world where robots drive their paths.
 
 Run-book: ``swarmmap world --config RUN_DIR/config.yaml`` (``swarmmap up`` starts it last).
-It builds the plan, its ground-truth grid and validation set, serves them on ``world/map``,
+It builds the plan (``world.floorplan``: procedural, a CubiCasa5K SVG or a DiNNO PNG), its
+ground-truth grid and validation set, serves them on ``world/map``,
 waits until every lidar streamer and learner of the run is alive, then drives the robots and
 publishes one ``Scan`` per robot per LiDAR period on ``robots/<id>/scan`` (the robot's final
 scan has ``last`` set). Afterwards it keeps serving the map until stopped.
+``swarmmap world --floorplan F --export DIR`` writes DIR/plan.stl, occupancy.png and
+occupancy.npz and exits.
 """
 
 from __future__ import annotations
 
+import io
 import logging
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pybullet
-import trimesh
 
+from swarmmap.services.robot import LIDAR_LINK, write_urdf
+from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, WorldSettings
-from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, path_length, plan_paths, point_along, procedural
+from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
+from swarmmap.shared.paths import path_length, plan_paths, point_along
+from swarmmap.shared.plans import load_floorplan
 from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
 from swarmmap.shared.sensing import beam_angles, validation_set
 
 log = logging.getLogger("world")
 
-ROBOT_RADIUS_M = 0.105  # TurtleBot3 Burger footprint
-ROBOT_HEIGHT_M = 0.192
+WALLS_GROUP = 1
+ROBOTS_GROUP = 4
 
 
 def build_plan(cfg: RunConfig) -> FloorPlan:
-    """The run's floor plan (procedural, seeded by the run's seed)."""
-    w = cfg.world
-    return procedural(w.rooms_x, w.rooms_y, cfg.seed, room_min=w.room_min_m, room_max=w.room_max_m,
-                      wall_thickness=w.wall_thickness_m, door_width=w.door_width_m,
-                      extra_door_prob=w.extra_door_prob)
+    """The run's floor plan (``world.floorplan``; procedural plans are seeded by the run's seed)."""
+    return load_floorplan(cfg.world.floorplan, cfg.world, cfg.seed)
 
 
-def plan_mesh(plan: FloorPlan, height: float) -> trimesh.Trimesh:
-    """The walls extruded to ``height`` as one triangle mesh."""
-    boxes = []
-    for r in plan.walls:
-        box = trimesh.creation.box(extents=(r.x1 - r.x0, r.y1 - r.y0, height))
-        box.apply_translation(((r.x0 + r.x1) / 2, (r.y0 + r.y1) / 2, height / 2))
-        boxes.append(box)
-    return trimesh.util.concatenate(boxes)
+def robot_paths(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid) -> list[np.ndarray]:
+    """The plan's own waypoint paths (one per robot), or paths planned through free space."""
+    if plan.paths is not None:
+        if len(plan.paths) < cfg.robots:
+            raise PlanError(cfg.world.waypoints, f"{len(plan.paths)} waypoint paths for {cfg.robots} robots")
+        return plan.paths[: cfg.robots]
+    return plan_paths(plan, grid, cfg.robots, cfg.seed, cfg.world.rooms_per_robot, cfg.world.robot_clearance_m)
+
+
+def export(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, folder: Path) -> None:
+    """``plan.stl`` (the extruded walls), ``occupancy.png`` and ``occupancy.npz`` (grid, resolution, origin)."""
+    mesh = plan.mesh(cfg.world.wall_height_m)
+    atomic_write_bytes(folder / "plan.stl", mesh.export(file_type="stl"))
+    save_png(folder / "occupancy.png", grid.grid.astype(float))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, grid=grid.grid, resolution=grid.resolution, origin=np.asarray(grid.origin))
+    atomic_write_bytes(folder / "occupancy.npz", buf.getvalue())
+    log.info("exported %s: plan.stl (%d triangles, watertight %s), occupancy %s at %.3f m", folder, len(mesh.faces),
+             mesh.is_watertight, grid.grid.shape, grid.resolution)
 
 
 @dataclass
@@ -57,63 +74,81 @@ class Robot:
 
 
 class Simulation:
-    """A pybullet (DIRECT) world: the static plan mesh and kinematic robots on their paths."""
+    """A pybullet (DIRECT) world: the plan's walls as one static mesh and URDF robots that follow
+    their paths kinematically; the LiDAR casts from each robot's ``base_scan`` link."""
 
     def __init__(self, plan: FloorPlan, paths: list[np.ndarray], settings: WorldSettings):
         self.settings = settings
         self.client = pybullet.connect(pybullet.DIRECT)
-        mesh = plan_mesh(plan, settings.wall_height_m)
+        mesh = plan.mesh(settings.wall_height_m)
         shape = pybullet.createCollisionShape(
             pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), indices=mesh.faces.ravel().tolist(),
             flags=pybullet.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=self.client)
         self.plan_body = pybullet.createMultiBody(0, shape, physicsClientId=self.client)
-        # Robots carry only a visual shape: the LiDAR sees the building, never another robot.
-        visual = pybullet.createVisualShape(pybullet.GEOM_CYLINDER, radius=ROBOT_RADIUS_M, length=ROBOT_HEIGHT_M,
-                                            physicsClientId=self.client)
-        self.robots = [Robot(p, path_length(p)) for p in paths]
-        self.bodies = [pybullet.createMultiBody(0, -1, visual, basePosition=[*p[0], ROBOT_HEIGHT_M / 2],
-                                                physicsClientId=self.client) for p in paths]
+        # Explicit groups: Bullet puts static bodies in a group of its own choosing.
+        pybullet.setCollisionFilterGroupMask(self.plan_body, -1, WALLS_GROUP, WALLS_GROUP, physicsClientId=self.client)
+        with tempfile.TemporaryDirectory() as tmp:
+            urdf = str(write_urdf(Path(tmp)))
+            self.robots = [Robot(p, path_length(p)) for p in paths]
+            self.bodies = [pybullet.loadURDF(urdf, [*p[0], 0.0], useFixedBase=True, physicsClientId=self.client)
+                           for p in paths]
+        names = [pybullet.getJointInfo(self.bodies[0], j, physicsClientId=self.client)[12].decode()
+                 for j in range(pybullet.getNumJoints(self.bodies[0], physicsClientId=self.client))]
+        self.lidar_link = names.index(LIDAR_LINK)
+        for body in self.bodies:  # the LiDAR sees the building, never a robot
+            for link in range(-1, len(names)):
+                pybullet.setCollisionFilterGroupMask(body, link, ROBOTS_GROUP, 0, physicsClientId=self.client)
         self.angles = beam_angles(settings.lidar_beams, settings.lidar_fov_deg)
         self.t = 0.0
+        self.step(0.0)
 
     def poses(self) -> np.ndarray:
-        """(N, 3) x, y, yaw of every robot."""
+        """(N, 3) x, y, yaw of every robot's LiDAR."""
         out = []
-        for r in self.robots:
-            xy, yaw = point_along(r.path, r.s)
-            out.append((xy[0], xy[1], yaw))
+        for body in self.bodies:
+            pos, orn = pybullet.getLinkState(body, self.lidar_link, computeForwardKinematics=True,
+                                             physicsClientId=self.client)[4:6]
+            yaw = pybullet.getEulerFromQuaternion(orn)[2]
+            out.append((pos[0], pos[1], yaw))
         return np.asarray(out)
 
     def step(self, dt: float) -> None:
-        """Advance every robot ``dt`` seconds along its path."""
+        """Advance every robot ``dt`` seconds along its path, heading along the path."""
         self.t += dt
         for robot, body in zip(self.robots, self.bodies):
             robot.s = min(robot.length, robot.s + self.settings.speed_mps * dt)
             robot.done = robot.s >= robot.length
             xy, yaw = point_along(robot.path, robot.s)
-            pybullet.resetBasePositionAndOrientation(
-                body, [xy[0], xy[1], ROBOT_HEIGHT_M / 2], pybullet.getQuaternionFromEuler([0, 0, yaw]),
-                physicsClientId=self.client)
+            pybullet.resetBasePositionAndOrientation(body, [xy[0], xy[1], 0.0], pybullet.getQuaternionFromEuler([0, 0, yaw]),
+                                                     physicsClientId=self.client)
 
-    def scan(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cast every robot's beams in one ``rayTestBatch``: absolute angles, ranges, hit (N, B)."""
+    def cast(self, poses: np.ndarray, angles: np.ndarray, batched: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Ranges and hit flags (N, B) of beams along absolute ``angles`` (N, B) from ``poses``;
+        all robots' rays in one ``rayTestBatch`` (``batched``) or one call per robot."""
         s = self.settings
-        angles = poses[:, 2:3] + self.angles[None, :].astype(np.float64)
         dirs = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=-1)
         origin = np.concatenate([poses[:, :2], np.full((len(poses), 1), s.lidar_height_m)], axis=1)
-        starts = np.repeat(origin[:, None, :], angles.shape[1], axis=1) + dirs * s.lidar_min_range_m
+        starts = origin[:, None, :] + dirs * s.lidar_min_range_m
         ends = origin[:, None, :] + dirs * s.lidar_max_range_m
-        starts, ends = starts.reshape(-1, 3), ends.reshape(-1, 3)
-        fractions = []
-        batch = pybullet.MAX_RAY_INTERSECTION_BATCH_SIZE
-        for a in range(0, len(starts), batch):
-            results = pybullet.rayTestBatch(starts[a : a + batch].tolist(), ends[a : a + batch].tolist(),
-                                            physicsClientId=self.client)
-            fractions.extend(r[2] if r[0] >= 0 else -1.0 for r in results)
-        frac = np.asarray(fractions).reshape(angles.shape)
+        groups = [slice(None)] if batched else [slice(i, i + 1) for i in range(len(poses))]
+        frac = np.empty(angles.shape)
+        for g in groups:
+            a, b = starts[g].reshape(-1, 3), ends[g].reshape(-1, 3)
+            out = []
+            for k in range(0, len(a), pybullet.MAX_RAY_INTERSECTION_BATCH_SIZE):
+                chunk = slice(k, k + pybullet.MAX_RAY_INTERSECTION_BATCH_SIZE)
+                results = pybullet.rayTestBatch(a[chunk].tolist(), b[chunk].tolist(), collisionFilterMask=WALLS_GROUP,
+                                                physicsClientId=self.client)
+                out.extend(r[2] if r[0] >= 0 else -1.0 for r in results)
+            frac[g] = np.asarray(out).reshape(frac[g].shape)
         hit = frac >= 0
         span = s.lidar_max_range_m - s.lidar_min_range_m
-        ranges = np.where(hit, s.lidar_min_range_m + frac * span, s.lidar_max_range_m)
+        return np.where(hit, s.lidar_min_range_m + frac * span, s.lidar_max_range_m), hit
+
+    def scan(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every robot's scan: absolute beam angles, ranges, hit (N, B)."""
+        angles = poses[:, 2:3] + self.angles[None, :].astype(np.float64)
+        ranges, hit = self.cast(poses, angles)
         return angles, ranges, hit
 
     def close(self) -> None:
@@ -133,19 +168,30 @@ def world_map_message(cfg: RunConfig, grid: OccupancyGrid) -> WorldMap:
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """The world service's main loop; returns the process exit status."""
     w = cfg.world
-    plan = build_plan(cfg)
-    grid = plan.occupancy(w.grid_resolution_m)
-    paths = plan_paths(plan, cfg.robots, cfg.seed, w.rooms_per_robot)
+    try:
+        plan = build_plan(cfg)
+        grid = plan.occupancy(w.grid_resolution_m)
+        if w.export is not None:
+            export(cfg, plan, grid, w.export)
+            return 0
+        paths = robot_paths(cfg, plan, grid)
+    except PlanError as exc:
+        log.error("floor plan refused: %s", exc)
+        return 2
     map_payload = encode(world_map_message(cfg, grid))
     sim = Simulation(plan, paths, w)
-    log.info("plan %s: %d rooms, %d doors, %.1f x %.1f m; paths %s m", plan.name, len(plan.rooms), len(plan.doors),
-             plan.bounds[2] - plan.bounds[0], plan.bounds[3] - plan.bounds[1],
-             ", ".join(f"{r.length:.1f}" for r in sim.robots))
+    x0, y0, x1, y1 = plan.bounds
+    log.info("plan %s (%s): %d rooms, %d doors, %.1f x %.1f m; paths %s m", plan.name, plan.kind, len(plan.rooms),
+             len(plan.doors), x1 - x0, y1 - y0, ", ".join(f"{r.length:.1f}" for r in sim.robots))
     keys = Keys(cfg.key_prefix, cfg.run_id)
     with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
         bus.serve(keys.world_map(), lambda: map_payload)
         pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
         bus.announce()
+        if not w.drive:
+            log.info("serving the map only (world.drive is off)")
+            stop.wait()
+            return 0
         wanted = {str(i) for i in range(cfg.robots)}
         for service in ("lidar", "learner"):
             missing = bus.wait_alive(service, wanted, w.wait_for_consumers_s, stop)

@@ -75,7 +75,10 @@ class Publisher:
 
     def put(self, message: Message) -> int:
         """Send ``message``; returns its size in bytes."""
-        payload = encode(message)
+        return self.put_bytes(encode(message))
+
+    def put_bytes(self, payload: bytes) -> int:
+        """Send an already encoded message."""
         self._pub.put(payload)
         self._bus.sent.add(self.key, len(payload))
         return len(payload)

@@ -58,6 +58,12 @@ class RouterSettings(Section):
 class WorldSettings(Section):
     """The world simulator: floor plan, robots, paths and the simulated LiDAR."""
 
+    floorplan: str = Field("procedural", description="procedural, a CubiCasa5K model.svg, or a DiNNO occupancy .png")
+    waypoints: str | None = Field(None, description="folder of .npy waypoint paths, one per robot (DiNNO normalised "
+                                                    "coordinates for a .png plan, metres otherwise); none = plan paths")
+    pixels_per_metre: float = Field(100.0, gt=0, description="scale of a .png plan")
+    dinno_border_px: int = Field(30, ge=0, description="border of a .png plan forced occupied (DiNNO: 30)")
+    export: Path | None = Field(None, description="write plan.stl, occupancy.png and occupancy.npz to this folder and exit")
     rooms_x: int = Field(3, ge=1, le=12, description="procedural plan: rooms along x")
     rooms_y: int = Field(2, ge=1, le=12, description="procedural plan: rooms along y")
     room_min_m: float = Field(2.5, gt=0.5, description="procedural plan: smallest room side (m)")
@@ -65,12 +71,14 @@ class WorldSettings(Section):
     wall_thickness_m: float = Field(0.12, gt=0.01, le=1.0, description="wall thickness (m)")
     wall_height_m: float = Field(2.5, gt=0.2, description="extruded wall height (m)")
     door_width_m: float = Field(0.9, gt=0.3, description="door opening width (m)")
-    extra_door_prob: float = Field(0.3, ge=0, le=1, description="chance of a door beyond the spanning tree")
+    extra_door_prob: float = Field(0.3, ge=0, le=1, description="procedural plan: chance of an extra door between neighbours")
+    corridor_width_m: float = Field(1.3, ge=0, description="procedural plan: corridor between the middle rows (0: none)")
+    robot_clearance_m: float = Field(0.2, gt=0, description="planned paths keep this far from walls (m)")
     grid_resolution_m: float = Field(0.05, gt=0.005, le=1.0, description="ground-truth grid cell size (m)")
     speed_mps: float = Field(0.22, gt=0, le=5, description="robot speed along its path (m/s)")
     sim_step_s: float = Field(0.1, gt=0, le=1, description="simulation time step (s)")
     time_scale: float = Field(0.0, ge=0, description="simulated seconds per wall second; 0 = as fast as the consumers take it")
-    rooms_per_robot: int = Field(0, ge=0, description="rooms each robot visits; 0 = enough for the team to cover the plan")
+    rooms_per_robot: int = Field(0, ge=0, description="planned paths: rooms each robot visits; 0 = about twice its share")
     lidar_beams: int = Field(360, ge=1, le=4096, description="beams per scan")
     lidar_fov_deg: float = Field(360.0, gt=0, le=360, description="angular range of a scan (deg)")
     lidar_min_range_m: float = Field(0.12, ge=0, description="closest measurable range (m)")
@@ -80,6 +88,7 @@ class WorldSettings(Section):
     val_scans: int = Field(300, ge=1, description="validation scans from random free poses")
     val_beams: int = Field(60, ge=1, description="beams per validation scan")
     wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for every lidar and learner to be alive before driving")
+    drive: bool = Field(True, description="drive the robots; false = only serve the map (when the streamers replay recordings)")
 
     @model_validator(mode="after")
     def _ranges(self) -> WorldSettings:
@@ -97,7 +106,16 @@ class LidarSettings(Section):
 
     robot: int | None = Field(None, ge=0, description="which robot this streamer serves (0..robots-1)")
     samples_per_beam: int = Field(12, ge=1, le=1000, description="free points sampled along each beam")
+    sampling: Literal["fixed", "uniform"] = Field(
+        "fixed", description="free samples at fixed spacing over the beam's full length (DiNNO) or uniformly at random up to the hit")
     occupied_depth_m: float = Field(0.03, ge=0, le=0.5, description="how far behind the surface the occupied point lies (m)")
+    range_noise_std_m: float = Field(0.01, ge=0, le=1, description="Gaussian range noise (m); 0 = ideal")
+    dropout_prob: float = Field(0.01, ge=0, lt=1, description="chance that a beam returns nothing (no points from it)")
+    free_on_max_range: bool = Field(True, description="a beam with no return within max range labels its whole length free")
+    record: str | None = Field(None, description="record the served stream to this file ({robot} is replaced by the robot id)")
+    replay: str | None = Field(None, description="serve this recording instead of live scans ({robot} is replaced by the robot id)")
+    replay_speed: float = Field(0.0, ge=0, description="replay at this multiple of the recorded rate; 0 = as fast as the learner takes it")
+    replay_incomplete: bool = Field(False, description="accept a recording whose recorder crashed (a .partial file)")
 
 
 class LearnerSettings(Section):
@@ -117,7 +135,7 @@ class LearnerSettings(Section):
     model_shape: list[int] = Field(
         default_factory=lambda: [2, 256, 64, 64, 64, 1],
         description="FourierNet layer widths: input 2, sine layer, ReLU layers, output 1")
-    siren_scale: float = Field(30.0, gt=0, description="frequency scale of the sine layer (inputs normalised to [-1, 1])")
+    siren_scale: float = Field(5.0, gt=0, description="frequency scale of the sine layer (inputs in metres from the map centre)")
     eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
     map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
     collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
@@ -137,6 +155,9 @@ class LearnerSettings(Section):
 
 class UpSettings(Section):
     """The launcher ``swarmmap up``."""
+
+    record: Path | None = Field(None, description="record every robot's LiDAR stream into this folder (robot-<i>.swrec)")
+    replay: Path | None = Field(None, description="run from the recordings in this folder instead of the world's robots")
 
     stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
@@ -184,12 +205,12 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Seconds per robot: for tests and a first try.
     "smoke": {
         "robots": 3,
-        "world": {"rooms_x": 2, "rooms_y": 2, "lidar_beams": 72, "lidar_rate_hz": 2.0,
+        "world": {"rooms_x": 2, "rooms_y": 2, "lidar_beams": 72, "lidar_rate_hz": 5.0,
                   "speed_mps": 0.5, "val_scans": 150, "val_beams": 48, "grid_resolution_m": 0.05},
         "lidar": {"samples_per_beam": 8},
-        "learner": {"rounds": 20, "primal_iterations": 5, "batch_size": 1024,
-                    "model_shape": [2, 64, 32, 32, 1], "lr_start": 3e-3, "lr_finish": 1e-3,
-                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 30.0},
+        "learner": {"rounds": 60, "primal_iterations": 10, "batch_size": 1024,
+                    "model_shape": [2, 128, 64, 64, 1], "lr_start": 1e-2, "lr_finish": 1e-3, "rho_init": 0.03,
+                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 8.0},
     },
     # The default: 7 robots, about ten minutes on two CPU cores, maps that show the rooms.
     "demo": {

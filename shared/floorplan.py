@@ -1,10 +1,12 @@
-"""Floor plans in metres: walls, rooms and doors; their ground-truth occupancy grid; robot paths.
+"""Floor plans in metres: walls, rooms and doors; their ground-truth occupancy grid and 3-D mesh.
 
-World coordinates are metres, x right, y up. A :class:`FloorPlan` is a set of solid wall boxes
-(the 3-D world extrudes them) and free rooms joined by doors; :meth:`FloorPlan.occupancy`
-rasterises it into an :class:`OccupancyGrid` whose outside is occupied, as in DiNNO's data.
-:func:`procedural` makes a seeded apartment; :func:`plan_paths` routes robots from different
-start rooms through doors so that together they cover the plan.
+World coordinates are metres, x right, y up. A :class:`FloorPlan` holds solid wall geometry
+(walls, railings and windows, with door openings cut out) as shapely polygons, the rooms'
+outlines and the doors; :meth:`FloorPlan.occupancy` rasterises it into an
+:class:`OccupancyGrid` (outside the building occupied, as in DiNNO's data) and
+:meth:`FloorPlan.mesh` extrudes the walls into a watertight triangle mesh. A raster plan (a
+DiNNO occupancy PNG) carries its grid and derives its wall polygons from it. Plans come from
+:func:`procedural` here, and from files through :mod:`swarmmap.shared.plans`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
+import trimesh
+from scipy import ndimage
+from shapely.geometry import MultiPolygon, Polygon, box
+from shapely.ops import unary_union
 
 
 class PlanError(ValueError):
@@ -24,60 +31,72 @@ class PlanError(ValueError):
         self.problem = problem
 
 
-@dataclass(frozen=True)
-class Rect:
-    """An axis-aligned rectangle [x0, x1] x [y0, y1] in metres."""
-
-    x0: float
-    y0: float
-    x1: float
-    y1: float
-
-    @property
-    def centre(self) -> tuple[float, float]:
-        return (self.x0 + self.x1) / 2, (self.y0 + self.y1) / 2
-
-
-@dataclass(frozen=True)
-class Door:
-    """An opening between rooms ``a`` and ``b``: its centre, its normal (unit, from a to b) and width."""
-
-    a: int
-    b: int
-    centre: tuple[float, float]
-    normal: tuple[float, float]
-    width: float
-
-
 @dataclass
 class FloorPlan:
-    """Solid walls, free rooms and the doors between them."""
+    """Solid walls (doors cut out), free rooms, door openings, and optional waypoint paths.
 
-    walls: list[Rect]
-    rooms: list[Rect]
-    doors: list[Door]
-    wall_thickness: float
-    name: str = "plan"
-    openings: list[Rect] = field(default_factory=list)
+    ``kind`` is ``procedural``, ``cubicasa`` or ``dinno``; a raster plan (``dinno``) carries its
+    ground-truth grid in ``raster``."""
+
+    name: str
+    source: str
+    walls: Polygon | MultiPolygon
+    rooms: list[Polygon] = field(default_factory=list)
+    room_names: list[str] = field(default_factory=list)
+    doors: list[Polygon] = field(default_factory=list)
+    raster: OccupancyGrid | None = None
+    paths: list[np.ndarray] | None = None
+    kind: str = "procedural"
+    image_size: tuple[int, int] | None = None  # raster plans: (width, height) in pixels
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
-        """(xmin, ymin, xmax, ymax) over all walls."""
-        xs0, ys0, xs1, ys1 = zip(*[(w.x0, w.y0, w.x1, w.y1) for w in self.walls])
-        return min(xs0), min(ys0), max(xs1), max(ys1)
+        """(xmin, ymin, xmax, ymax) of walls and rooms."""
+        if self.raster is not None:
+            return self.raster.bounds
+        geoms = [self.walls, *self.rooms]
+        return tuple(unary_union(geoms).bounds)  # type: ignore[return-value]
+
+    def wall_parts(self) -> list[Polygon]:
+        """The wall geometry as a list of polygons (with holes)."""
+        geom = self.walls
+        return list(geom.geoms) if isinstance(geom, MultiPolygon) else [geom] if not geom.is_empty else []
 
     def occupancy(self, resolution: float, margin: float = 0.5) -> OccupancyGrid:
-        """Rasterise: rooms and door openings free, everything else (walls, outside) occupied."""
+        """The ground truth at ``resolution``: walls and outside occupied, rooms, doors and any
+        region enclosed by walls free."""
+        if self.raster is not None:
+            return self.raster.resample(resolution)
         xmin, ymin, xmax, ymax = self.bounds
         origin = (xmin - margin, ymin - margin)
         width = int(math.ceil((xmax - xmin + 2 * margin) / resolution))
         height = int(math.ceil((ymax - ymin + 2 * margin) / resolution))
         grid = OccupancyGrid(np.ones((height, width), dtype=np.uint8), resolution, origin)
-        for rect in self.rooms + self.openings:
-            grid.fill(rect, 0)
-        for rect in self.walls:
-            grid.fill(rect, 1)
+        pts, shape = grid.centres()
+        x, y = pts[:, 0], pts[:, 1]
+        wall = shapely.contains_xy(self.walls, x, y).reshape(shape)
+        free = np.zeros(shape, dtype=bool)
+        if self.rooms:
+            free |= shapely.contains_xy(unary_union(self.rooms), x, y).reshape(shape)
+        if self.doors:
+            free |= shapely.contains_xy(unary_union(self.doors), x, y).reshape(shape)
+        # Space enclosed by walls but outside every room outline is free too.
+        labels, _ = ndimage.label(~wall)
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        free |= ~np.isin(labels, border) & ~wall
+        free &= ~wall
+        grid.grid[free] = 0
         return grid
+
+    def mesh(self, height: float) -> trimesh.Trimesh:
+        """The walls extruded to ``height`` metres: one watertight mesh."""
+        # Snapping to a micrometre grid and dropping collinear vertices keeps the triangulation
+        # of rings with many mitred corners from leaving gaps (a non-watertight mesh).
+        clean = [shapely.set_precision(p, 1e-6).simplify(1e-6) for p in self.wall_parts() if p.area > 1e-8]
+        parts = [trimesh.creation.extrude_polygon(p, height) for p in clean if not p.is_empty]
+        if not parts:
+            raise PlanError(self.source, "the plan has no walls to extrude")
+        return trimesh.util.concatenate(parts)
 
 
 @dataclass
@@ -93,19 +112,20 @@ class OccupancyGrid:
         h, w = self.grid.shape
         return self.origin[0], self.origin[1], self.origin[0] + w * self.resolution, self.origin[1] + h * self.resolution
 
-    def _span(self, lo: float, hi: float, o: float, n: int) -> tuple[int, int]:
-        # Cells whose centres lie inside [lo, hi].
-        a = int(math.ceil((lo - o) / self.resolution - 0.5))
-        b = int(math.floor((hi - o) / self.resolution - 0.5)) + 1
-        return max(a, 0), min(b, n)
+    def resample(self, resolution: float) -> OccupancyGrid:
+        """The same ground truth at another cell size (nearest cell)."""
+        if math.isclose(resolution, self.resolution):
+            return self
+        x0, y0, x1, y1 = self.bounds
+        out = OccupancyGrid(np.ones((int(math.ceil((y1 - y0) / resolution)), int(math.ceil((x1 - x0) / resolution))),
+                                    dtype=np.uint8), resolution, self.origin)
+        pts, shape = out.centres()
+        out.grid[:] = self.occupied(pts).reshape(shape)
+        return out
 
-    def fill(self, rect: Rect, value: int) -> None:
-        """Set every cell whose centre lies in ``rect``."""
-        h, w = self.grid.shape
-        c0, c1 = self._span(rect.x0, rect.x1, self.origin[0], w)
-        r0, r1 = self._span(rect.y0, rect.y1, self.origin[1], h)
-        if c0 < c1 and r0 < r1:
-            self.grid[r0:r1, c0:c1] = value
+    def clearance(self) -> np.ndarray:
+        """Distance (m) from each cell centre to the nearest occupied cell (0 on occupied cells)."""
+        return ndimage.distance_transform_edt(self.grid == 0) * self.resolution
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rows, cols, inside) of points ``xy`` (..., 2)."""
@@ -132,17 +152,7 @@ class OccupancyGrid:
 
     def random_free(self, n: int, rng: np.random.Generator, clearance: float = 0.0) -> np.ndarray:
         """``n`` points drawn uniformly from free cells at least ``clearance`` from anything occupied."""
-        free = self.grid == 0
-        if clearance > 0:
-            k = int(math.ceil(clearance / self.resolution))
-            padded = np.pad(self.grid > 0, k, constant_values=True)
-            near = np.zeros_like(free)
-            h, w = free.shape
-            for dr in range(-k, k + 1):
-                for dc in range(-k, k + 1):
-                    if dr * dr + dc * dc <= k * k:
-                        near |= padded[k + dr : k + dr + h, k + dc : k + dc + w]
-            free &= ~near
+        free = self.clearance() > clearance if clearance > 0 else self.grid == 0
         rows, cols = np.nonzero(free)
         if len(rows) == 0:
             raise ValueError("the occupancy grid has no free cell" + (f" {clearance} m from a wall" if clearance else ""))
@@ -154,24 +164,45 @@ class OccupancyGrid:
 
 
 def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, room_max: float = 4.5,
-               wall_thickness: float = 0.12, door_width: float = 0.9, extra_door_prob: float = 0.3) -> FloorPlan:
-    """A seeded apartment of ``rooms_x`` x ``rooms_y`` rooms joined by doors (a random spanning
-    tree, so every room is reachable, plus extra doors with probability ``extra_door_prob``)."""
+               wall_thickness: float = 0.12, door_width: float = 0.9, extra_door_prob: float = 0.3,
+               corridor_width: float = 1.3) -> FloorPlan:
+    """A seeded CubiCasa-like apartment: ``rooms_y`` rows of ``rooms_x`` rooms with a corridor
+    between the middle rows (``corridor_width`` 0: none). Rooms on the corridor open onto it;
+    the others open towards it; neighbours in a row get a door with ``extra_door_prob`` (and
+    always where the rooms would otherwise not be connected, as without a corridor)."""
     rng = np.random.default_rng(seed)
     t = wall_thickness
     xs = np.concatenate([[0.0], np.cumsum(rng.uniform(room_min, room_max, rooms_x))])
-    ys = np.concatenate([[0.0], np.cumsum(rng.uniform(room_min, room_max, rooms_y))])
+    heights = list(rng.uniform(room_min, room_max, rooms_y))
+    split = rooms_y // 2 if rooms_y > 1 else 0  # rows below the corridor
+    bands: list[tuple[str, float]] = [("row", h) for h in heights[:split]]
+    if corridor_width > 0:
+        bands.append(("corridor", corridor_width))
+    bands += [("row", h) for h in heights[split:]]
+    ys = np.concatenate([[0.0], np.cumsum([h for _, h in bands])])
+    cells: list[tuple[str, Polygon]] = []
+    grid_ids: dict[tuple[int, int], int] = {}
+    corridor = -1
+    row = 0
+    for band, (kind, _) in enumerate(bands):
+        if kind == "corridor":
+            corridor = len(cells)
+            cells.append(("corridor", box(xs[0], ys[band], xs[-1], ys[band + 1])))
+            continue
+        for i in range(rooms_x):
+            grid_ids[(i, row)] = len(cells)
+            cells.append((f"room-{row}-{i}", box(xs[i], ys[band], xs[i + 1], ys[band + 1])))
+        row += 1
+    band_of_row = [b for b, (kind, _) in enumerate(bands) if kind == "row"]
 
-    def rid(i: int, j: int) -> int:
-        return j * rooms_x + i
-
-    rooms = [Rect(xs[i] + t / 2, ys[j] + t / 2, xs[i + 1] - t / 2, ys[j + 1] - t / 2)
-             for j in range(rooms_y) for i in range(rooms_x)]
-    # Candidate doors: every wall between two neighbouring rooms.
-    edges = [(rid(i, j), rid(i + 1, j)) for j in range(rooms_y) for i in range(rooms_x - 1)]
-    edges += [(rid(i, j), rid(i, j + 1)) for j in range(rooms_y - 1) for i in range(rooms_x)]
-    order = rng.permutation(len(edges))
-    parent = list(range(len(rooms)))
+    # Doors: (cell a, cell b, orientation, position across, lo, hi along the shared edge).
+    edges: list[tuple[int, int, bool, float, float, float]] = []
+    for r in range(rooms_y):
+        b = band_of_row[r]
+        for i in range(1, rooms_x):
+            edges.append((grid_ids[(i - 1, r)], grid_ids[(i, r)], True, xs[i], ys[b], ys[b + 1]))
+    chosen: list[tuple[int, int, bool, float, float, float]] = []
+    parent = list(range(len(cells)))
 
     def find(a: int) -> int:
         while parent[a] != a:
@@ -179,143 +210,39 @@ def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, 
             a = parent[a]
         return a
 
-    chosen = []
-    for k in order:  # randomised Kruskal: a spanning tree, then extra doors
-        a, b = edges[k]
-        if find(a) != find(b):
-            parent[find(a)] = find(b)
-            chosen.append(edges[k])
-        elif rng.uniform() < extra_door_prob:
-            chosen.append(edges[k])
-    door_on = set(chosen)
+    def join(e: tuple[int, int, bool, float, float, float]) -> None:
+        parent[find(e[0])] = find(e[1])
+        chosen.append(e)
 
-    walls = [Rect(xs[0] - t / 2, ys[0] - t / 2, xs[-1] + t / 2, ys[0] + t / 2),
-             Rect(xs[0] - t / 2, ys[-1] - t / 2, xs[-1] + t / 2, ys[-1] + t / 2),
-             Rect(xs[0] - t / 2, ys[0] - t / 2, xs[0] + t / 2, ys[-1] + t / 2),
-             Rect(xs[-1] - t / 2, ys[0] - t / 2, xs[-1] + t / 2, ys[-1] + t / 2)]
-    doors: list[Door] = []
-    openings: list[Rect] = []
-    slack = door_width / 2 + t / 2 + 0.15
-
-    def wall_with_door(a: int, b: int, along0: float, along1: float, across: float, vertical: bool) -> None:
-        if (a, b) not in door_on:
-            segs = [(along0 - t / 2, along1 + t / 2)]
-        else:
-            c = rng.uniform(along0 + slack, along1 - slack)
-            segs = [(along0 - t / 2, c - door_width / 2), (c + door_width / 2, along1 + t / 2)]
-            centre = (across, c) if vertical else (c, across)
-            normal = (1.0, 0.0) if vertical else (0.0, 1.0)
-            doors.append(Door(a, b, centre, normal, door_width))
-            lo, hi = c - door_width / 2, c + door_width / 2
-            openings.append(Rect(across - t, lo, across + t, hi) if vertical else Rect(lo, across - t, hi, across + t))
-        for s0, s1 in segs:
-            walls.append(Rect(across - t / 2, s0, across + t / 2, s1) if vertical else Rect(s0, across - t / 2, s1, across + t / 2))
-
-    for j in range(rooms_y):
-        for i in range(1, rooms_x):
-            wall_with_door(rid(i - 1, j), rid(i, j), ys[j], ys[j + 1], xs[i], vertical=True)
-    for j in range(1, rooms_y):
+    for r in range(rooms_y):
         for i in range(rooms_x):
-            wall_with_door(rid(i, j - 1), rid(i, j), xs[i], xs[i + 1], ys[j], vertical=False)
-    return FloorPlan(walls, rooms, doors, t, name=f"procedural-{rooms_x}x{rooms_y}-seed{seed}", openings=openings)
+            b = band_of_row[r]
+            if corridor >= 0 and (b + 1 < len(bands) and bands[b + 1][0] == "corridor"):
+                join((grid_ids[(i, r)], corridor, False, ys[b + 1], xs[i], xs[i + 1]))
+            elif corridor >= 0 and b > 0 and bands[b - 1][0] == "corridor":
+                join((grid_ids[(i, r)], corridor, False, ys[b], xs[i], xs[i + 1]))
+            elif corridor >= 0:  # further out: a door towards the corridor
+                toward = r + 1 if b < band_of_row[split] else r - 1
+                nb = band_of_row[toward]
+                join((grid_ids[(i, r)], grid_ids[(i, toward)], False, ys[max(b, nb)], xs[i], xs[i + 1]))
+    vertical = [(grid_ids[(i, r - 1)], grid_ids[(i, r)], False, ys[band_of_row[r]], xs[i], xs[i + 1])
+                for r in range(1, rooms_y) for i in range(rooms_x)] if corridor < 0 else []
+    candidates = edges + vertical
+    for k in rng.permutation(len(candidates)):
+        e = candidates[k]
+        if find(e[0]) != find(e[1]) or rng.uniform() < extra_door_prob:
+            join(e)
 
-
-def plan_paths(plan: FloorPlan, robots: int, seed: int, rooms_per_robot: int = 0,
-               approach: float = 0.45) -> list[np.ndarray]:
-    """One waypoint path (K, 2) per robot: a depth-first tour through doors from a start room.
-
-    Start rooms are spread over the plan; each robot visits ``rooms_per_robot`` rooms (0: about
-    twice the plan's share, so that tours overlap), preferring rooms no teammate has visited;
-    a room that no tour reached is then added to the tour that ends closest to it, so the team
-    covers every reachable room. Doors are crossed straight, between points ``approach`` metres
-    either side of the door.
-    """
-    n = len(plan.rooms)
-    k = rooms_per_robot or min(n, max(2, math.ceil(2 * n / robots)))
-    door_between: dict[tuple[int, int], Door] = {}
-    adjacency: dict[int, list[int]] = {i: [] for i in range(n)}
-    for d in plan.doors:
-        if (d.a, d.b) not in door_between:
-            door_between[(d.a, d.b)] = door_between[(d.b, d.a)] = d
-            adjacency[d.a].append(d.b)
-            adjacency[d.b].append(d.a)
-    rng = np.random.default_rng(seed + 7919)
-    covered: set[int] = set()
-    walks: list[list[int]] = []
-    for r in range(robots):
-        start = (r * n // robots) % n if robots <= n else r % n
-        walk, visited, stack = [start], {start}, [start]
-        while stack and len(visited) < k:
-            options = [b for b in adjacency[stack[-1]] if b not in visited]
-            if options:
-                fresh = [b for b in options if b not in covered] or options
-                nxt = fresh[rng.integers(len(fresh))]
-                visited.add(nxt)
-                stack.append(nxt)
-                walk.append(nxt)
-            else:
-                stack.pop()
-                if stack:
-                    walk.append(stack[-1])  # walk back through the door we came by
-        covered |= visited
-        walks.append(walk)
-    for room in range(n):
-        if room in covered:
+    doors = []
+    slack = door_width / 2 + t / 2 + 0.15
+    for a, b_, vertical_edge, across, lo, hi in chosen:
+        if hi - lo < 2 * slack:
             continue
-        routes = [_route(adjacency, w[-1], room) for w in walks]
-        best = min((len(rt), i) for i, rt in enumerate(routes) if rt is not None) if any(routes) else None
-        if best is None:
-            continue  # unreachable from every start: nobody can map it
-        walks[best[1]].extend(routes[best[1]][1:])
-        covered |= set(routes[best[1]])
-    paths = []
-    for r, walk in enumerate(walks):
-        cx, cy = plan.rooms[walk[0]].centre
-        offset = 0.3 * (r // n) if robots > n else 0.0  # robots sharing a start room start apart
-        points = [(cx + offset, cy)]
-        for here, nxt in zip(walk, walk[1:]):
-            door = door_between[(here, nxt)]
-            sign = 1.0 if door.a == here else -1.0
-            (x, y), (nx, ny) = door.centre, door.normal
-            points.append((x - sign * nx * approach, y - sign * ny * approach))
-            points.append((x + sign * nx * approach, y + sign * ny * approach))
-            points.append(plan.rooms[nxt].centre)
-        paths.append(np.asarray(points, dtype=np.float64))
-    return paths
-
-
-def _route(adjacency: dict[int, list[int]], a: int, b: int) -> list[int] | None:
-    """Shortest room sequence from ``a`` to ``b`` (breadth-first), or None."""
-    prev = {a: a}
-    todo = [a]
-    for here in todo:
-        if here == b:
-            out = [b]
-            while out[-1] != a:
-                out.append(prev[out[-1]])
-            return out[::-1]
-        for nxt in adjacency[here]:
-            if nxt not in prev:
-                prev[nxt] = here
-                todo.append(nxt)
-    return None
-
-
-def path_length(path: np.ndarray) -> float:
-    """Total length of a waypoint path in metres."""
-    return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()) if len(path) > 1 else 0.0
-
-
-def point_along(path: np.ndarray, s: float) -> tuple[np.ndarray, float]:
-    """Position and heading (rad) at arc length ``s`` along ``path`` (clamped to its ends)."""
-    seg = np.diff(path, axis=0)
-    lengths = np.linalg.norm(seg, axis=1)
-    if len(seg) == 0 or lengths.sum() == 0:
-        return path[0].copy(), 0.0
-    s = float(np.clip(s, 0.0, lengths.sum()))
-    cum = np.concatenate([[0.0], np.cumsum(lengths)])
-    i = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1))
-    while lengths[i] == 0 and i > 0:
-        i -= 1
-    frac = (s - cum[i]) / lengths[i] if lengths[i] > 0 else 0.0
-    return path[i] + frac * seg[i], math.atan2(seg[i][1], seg[i][0])
+        c = rng.uniform(lo + slack, hi - slack)
+        w = door_width / 2
+        doors.append(box(across - t, c - w, across + t, c + w) if vertical_edge else box(c - w, across - t, c + w, across + t))
+    frames = [cell.exterior.buffer(t / 2, cap_style="square", join_style="mitre") for _, cell in cells]
+    walls = unary_union(frames).difference(unary_union(doors)) if doors else unary_union(frames)
+    rooms = [cell.buffer(-t / 2, join_style="mitre") for _, cell in cells]
+    name = f"procedural-{rooms_x}x{rooms_y}-seed{seed}"
+    return FloorPlan(name, f"procedural:{rooms_x}x{rooms_y}:seed{seed}", walls, rooms, [n for n, _ in cells], doors)

@@ -2,8 +2,8 @@
 
 :class:`FourierNet` is DiNNO's network: a sine (SIREN) first layer, ReLU hidden layers and a
 sigmoid output, mapping a world point (x, y) in metres to an occupancy probability. Inputs are
-normalised to [-1, 1] over the map's bounds by fixed buffers, so a saved model is
-self-contained. Parameters travel as one flat float32 vector (DiNNO's ``parameters_to_vector``).
+taken in metres from the map's centre (a fixed buffer, so a saved model is self-contained), so
+the sine layer's ``scale`` means the same spatial frequency on every plan. Parameters travel as one flat float32 vector (DiNNO's ``parameters_to_vector``).
 """
 
 from __future__ import annotations
@@ -42,7 +42,6 @@ class FourierNet(nn.Module):
         self.scale = scale
         x0, y0, x1, y1 = bounds
         self.register_buffer("centre", torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=torch.float32))
-        self.register_buffer("half_extent", torch.tensor(max(x1 - x0, y1 - y0) / 2, dtype=torch.float32))
         layers: list[nn.Module] = [SirenLayer(shape[0], shape[1], scale)]
         for a, b in zip(shape[1:-2], shape[2:-1]):
             layers += [nn.Linear(a, b), nn.ReLU()]
@@ -51,7 +50,7 @@ class FourierNet(nn.Module):
 
     def logits(self, xy: torch.Tensor) -> torch.Tensor:
         """Pre-sigmoid outputs (N,) for points ``xy`` (N, 2) in metres."""
-        return self.seq((xy - self.centre) / self.half_extent).squeeze(-1)
+        return self.seq(xy - self.centre).squeeze(-1)
 
     def forward(self, xy: torch.Tensor) -> torch.Tensor:
         """Occupancy probabilities (N,) for points ``xy`` (N, 2) in metres."""

@@ -19,13 +19,47 @@ def beam_angles(beams: int, fov_deg: float = 360.0) -> np.ndarray:
     return np.linspace(-half, half, beams, endpoint=not np.isclose(fov_deg, 360.0)).astype(np.float32)
 
 
+def sensor_model(ranges: np.ndarray, hit: np.ndarray, rng: np.random.Generator, *, noise_std: float,
+                 dropout_prob: float, min_range: float, max_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A real sensor's view of ideal ranges: Gaussian range noise on returns, dropouts (no
+    return at all), and returns pushed past ``max_range`` becoming max-range returns (no hit).
+    Returns (ranges, hit, valid): ``valid`` false marks a dropped beam."""
+    ranges = np.asarray(ranges, dtype=np.float64).copy()
+    hit = np.asarray(hit, dtype=bool).copy()
+    if noise_std > 0:
+        ranges[hit] += rng.normal(0.0, noise_std, size=int(hit.sum()))
+    valid = rng.uniform(size=ranges.shape) >= dropout_prob if dropout_prob > 0 else np.ones(ranges.shape, bool)
+    beyond = hit & (ranges >= max_range)
+    hit &= ~beyond
+    ranges = np.clip(np.where(hit, ranges, max_range), min_range, max_range)
+    return ranges, hit, valid
+
+
 def beam_samples(position: np.ndarray, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray,
-                 max_range: float, samples_per_beam: int, occupied_depth: float) -> tuple[np.ndarray, np.ndarray]:
+                 max_range: float, samples_per_beam: int, occupied_depth: float, *, sampling: str = "fixed",
+                 rng: np.random.Generator | None = None, free_on_max_range: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Labelled points (M, 2) float32 and labels (M,) float32 (0 free, 1 occupied) of one scan.
 
     ``angles`` are absolute (world frame) beam directions; ``hit[i]`` false means beam i saw
-    nothing within ``max_range`` (all its samples are free).
+    nothing within ``max_range`` (all its samples are free, unless ``free_on_max_range`` is
+    off). ``sampling`` "fixed" puts the free samples at DiNNO's fixed spacing over the full
+    range; "uniform" draws them uniformly up to the hit (needs ``rng``).
     """
+    if sampling == "uniform":
+        if rng is None:
+            raise ValueError("uniform sampling needs an rng")
+        ranges_ = np.asarray(ranges, dtype=np.float64)
+        hit_ = np.asarray(hit, dtype=bool)
+        keep_beam = hit_ | free_on_max_range
+        t = rng.uniform(0.0, 1.0, size=(len(ranges_), samples_per_beam)) * ranges_[:, None]
+        angles_ = np.asarray(angles, dtype=np.float64)
+        dirs = np.stack([np.cos(angles_), np.sin(angles_)], axis=1)
+        pos = np.asarray(position, dtype=np.float64).reshape(1, 2)
+        free_pts = (pos[:, None, :] + t[:, :, None] * dirs[:, None, :])[keep_beam].reshape(-1, 2)
+        occ_pts = pos + (ranges_[hit_] + occupied_depth)[:, None] * dirs[hit_]
+        points = np.concatenate([free_pts, occ_pts]).astype(np.float32)
+        labels = np.concatenate([np.zeros(len(free_pts)), np.ones(len(occ_pts))]).astype(np.float32)
+        return points, labels
     position = np.asarray(position, dtype=np.float64).reshape(1, 2)
     angles = np.asarray(angles, dtype=np.float64)
     ranges = np.asarray(ranges, dtype=np.float64)
@@ -34,6 +68,8 @@ def beam_samples(position: np.ndarray, angles: np.ndarray, ranges: np.ndarray, h
     t = np.linspace(0.0, max_range, samples_per_beam) if samples_per_beam > 1 else np.zeros(1)
     # Free up to the hit; a beam with no return is free over its whole length.
     keep = (t[None, :] < ranges[:, None]) | (~hit[:, None] & (t[None, :] <= ranges[:, None]))  # (B, S)
+    if not free_on_max_range:
+        keep &= hit[:, None]
     free = position[:, None, :] + t[None, :, None] * dirs[:, None, :]  # (B, S, 2)
     free_pts = free[keep]
     occ_pts = position + (ranges[hit] + occupied_depth)[:, None] * dirs[hit]

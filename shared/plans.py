@@ -1,0 +1,151 @@
+"""Floor plans from every source behind one spec: ``procedural``, a CubiCasa5K ``model.svg``, or
+a DiNNO occupancy PNG (with its waypoint ``.npy`` loops).
+
+    plan = load_floorplan("../shared/data/cubicasa5k/353/model.svg", cfg.world, seed=0)
+    plan = load_floorplan("floor_img.png", cfg.world, seed=0)   # + world.waypoints = a folder of .npy
+
+A PNG is read as DiNNO does: 255 (>= 128) is occupied, a border of ``dinno_border_px`` pixels
+is forced occupied, ``pixels_per_metre`` sets the scale, the image centre is the origin and
+image rows grow southwards. Its waypoint files hold (K, 2) loops in DiNNO's normalised
+[-1, 1] coordinates, scaled by (width/2, height/2) pixels and interpolated as DiNNO does.
+Waypoint files for the other kinds hold metres. Every problem raises :class:`PlanError`
+naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
+
+from swarmmap.shared.config import WorldSettings
+from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError, procedural
+from swarmmap.shared.paths import check_paths, interpolate_dinno
+
+MAX_IMAGE_PIXELS = 50_000_000
+
+
+def plan_reference(spec: str) -> dict[str, str]:
+    """What identifies a plan in a recording: its spec and, for a file, its SHA-256."""
+    if spec == "procedural":
+        return {"floorplan": spec}
+    data = Path(spec).read_bytes()
+    return {"floorplan": str(Path(spec).resolve()), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def load_floorplan(spec: str, settings: WorldSettings, seed: int) -> FloorPlan:
+    """The plan named by ``spec`` (``procedural`` or a path ending .svg or .png), with its
+    waypoint paths when ``settings.waypoints`` names them."""
+    if spec == "procedural":
+        plan = procedural(settings.rooms_x, settings.rooms_y, seed, room_min=settings.room_min_m,
+                          room_max=settings.room_max_m, wall_thickness=settings.wall_thickness_m,
+                          door_width=settings.door_width_m, extra_door_prob=settings.extra_door_prob,
+                          corridor_width=settings.corridor_width_m)
+    else:
+        path = Path(spec)
+        if not path.is_file():
+            raise PlanError(spec, "file does not exist" if not path.exists() else "not a regular file")
+        suffix = path.suffix.lower()
+        if suffix == ".svg":
+            plan = load_cubicasa_plan(path)
+        elif suffix == ".png":
+            plan = load_dinno_png(path, settings.pixels_per_metre, settings.dinno_border_px, settings.grid_resolution_m)
+        else:
+            raise PlanError(spec, f"unknown floor-plan kind {suffix or '(no suffix)'!r}: use procedural, a .svg or a .png")
+    if settings.waypoints:
+        plan.paths = load_waypoints(Path(settings.waypoints), plan)
+    return plan
+
+
+def load_cubicasa_plan(path: Path) -> FloorPlan:
+    """A CubiCasa5K ``model.svg`` as a FloorPlan: walls, railings and windows solid, doors cut out."""
+    from swarmmap.shared.cubicasa import load_cubicasa
+
+    cc = load_cubicasa(path)
+    solid = [_polygon(p) for p in cc.walls + cc.railings + cc.windows]
+    doors = [_polygon(p) for p in cc.doors]
+    walls = unary_union(solid)
+    if doors:
+        walls = walls.difference(unary_union(doors))
+    rooms = [_polygon(p) for _, p in cc.rooms]
+    return FloorPlan(path.parent.name + "/" + path.name, str(path), walls, rooms, [name for name, _ in cc.rooms], doors,
+                     kind="cubicasa")
+
+
+def _polygon(points: np.ndarray) -> Polygon:
+    poly = Polygon(points)
+    return poly if poly.is_valid else poly.buffer(0)
+
+
+def load_dinno_png(path: Path, pixels_per_metre: float, border_px: int, mesh_resolution: float) -> FloorPlan:
+    """A DiNNO occupancy PNG as a raster FloorPlan (walls derived at ``mesh_resolution``)."""
+    try:
+        with Image.open(path) as img:
+            if img.width * img.height > MAX_IMAGE_PIXELS:
+                raise PlanError(path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
+            pixels = np.asarray(img.convert("L"))
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise PlanError(path, f"not a readable PNG image: {exc}") from None
+    occupied = pixels >= 128
+    if border_px > 0:
+        occupied[:border_px] = occupied[-border_px:] = True
+        occupied[:, :border_px] = occupied[:, -border_px:] = True
+    if occupied.all():
+        raise PlanError(path, "the image has no free space (every pixel is occupied, value >= 128)")
+    ny, nx = occupied.shape
+    res = 1.0 / pixels_per_metre
+    native = OccupancyGrid(occupied[::-1].astype(np.uint8), res, (-nx / 2 * res, -ny / 2 * res))
+    coarse = native.resample(max(mesh_resolution, res))
+    # One "room", the whole image: the planner may go anywhere free.
+    return FloorPlan(path.name, str(path), grid_walls(coarse), [box(*coarse.bounds)], ["free space"], raster=native,
+                     kind="dinno", image_size=(nx, ny))
+
+
+def grid_walls(grid: OccupancyGrid):
+    """Occupied cells of ``grid`` as polygons (runs of cells per row, merged)."""
+    boxes = []
+    res = grid.resolution
+    ox, oy = grid.origin
+    for r, row in enumerate(grid.grid > 0):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            boxes.append(box(ox + a * res, oy + r * res, ox + b * res, oy + (r + 1) * res))
+    return unary_union(boxes).simplify(res * 0.01)
+
+
+def load_waypoints(folder: Path, plan: FloorPlan) -> list[np.ndarray]:
+    """Every ``*.npy`` in ``folder`` (sorted by the number in its name) as one robot's path."""
+    if not folder.is_dir():
+        raise PlanError(folder, "waypoint folder does not exist" if not folder.exists() else "not a folder")
+    files = sorted(folder.glob("*.npy"), key=lambda f: (int(m.group()) if (m := re.search(r"\d+", f.stem)) else 1 << 30, f.name))
+    if not files:
+        raise PlanError(folder, "no .npy waypoint files in the folder")
+    paths = []
+    for f in files:
+        try:
+            arr = np.load(f, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise PlanError(f, f"not a readable .npy array: {exc}") from None
+        if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 2 or not np.issubdtype(arr.dtype, np.number):
+            raise PlanError(f, f"waypoints must be a numeric (K, 2) array with K >= 2, got {arr.dtype} {arr.shape}")
+        arr = arr.astype(np.float64)
+        if not np.isfinite(arr).all():
+            raise PlanError(f, "waypoints hold NaN or infinite values")
+        if plan.kind == "dinno" and plan.raster is not None and plan.image_size is not None:
+            nx, ny = plan.image_size
+            res = plan.raster.resolution
+            if (np.abs(arr) > 1.0).any():
+                raise PlanError(f, "DiNNO waypoints must lie in [-1, 1] (normalised image coordinates)")
+            # DiNNO: pixels = w * (nx/2, ny/2) about the image centre, rows growing southwards.
+            arr = interpolate_dinno(arr) * np.array([nx / 2 * res, -ny / 2 * res])
+        try:
+            check_paths([arr], plan.raster or plan.occupancy(0.05), f)
+        except PlanError as exc:
+            raise PlanError(f, exc.problem.replace("path 0: ", "")) from None
+        paths.append(arr)
+    return paths
