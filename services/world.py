@@ -122,10 +122,12 @@ class Simulation:
             pybullet.resetBasePositionAndOrientation(body, [xy[0], xy[1], 0.0], pybullet.getQuaternionFromEuler([0, 0, yaw]),
                                                      physicsClientId=self.client)
 
-    def cast(self, poses: np.ndarray, angles: np.ndarray, batched: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def cast(self, poses: np.ndarray, angles: np.ndarray, batched: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Ranges and hit flags (N, B) of beams along absolute ``angles`` (N, B) from ``poses``;
-        all robots' rays in one ``rayTestBatch`` (``batched``) or one call per robot."""
+        all robots' rays in one ``rayTestBatch`` (``batched``) or one call per robot (default:
+        ``world.ray_batch``)."""
         s = self.settings
+        batched = s.ray_batch == "all" if batched is None else batched
         dirs = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=-1)
         origin = np.concatenate([poses[:, :2], np.full((len(poses), 1), s.lidar_height_m)], axis=1)
         starts = origin[:, None, :] + dirs * s.lidar_min_range_m
@@ -137,7 +139,7 @@ class Simulation:
             out = []
             for k in range(0, len(a), pybullet.MAX_RAY_INTERSECTION_BATCH_SIZE):
                 chunk = slice(k, k + pybullet.MAX_RAY_INTERSECTION_BATCH_SIZE)
-                results = pybullet.rayTestBatch(a[chunk].tolist(), b[chunk].tolist(), collisionFilterMask=WALLS_GROUP,
+                results = pybullet.rayTestBatch(a[chunk].tolist(), b[chunk].tolist(), collisionFilterMask=WALLS_GROUP, numThreads=0,
                                                 physicsClientId=self.client)
                 out.extend(r[2] if r[0] >= 0 else -1.0 for r in results)
             frac[g] = np.asarray(out).reshape(frac[g].shape)
@@ -183,49 +185,51 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     x0, y0, x1, y1 = plan.bounds
     log.info("plan %s (%s): %d rooms, %d doors, %.1f x %.1f m; paths %s m", plan.name, plan.kind, len(plan.rooms),
              len(plan.doors), x1 - x0, y1 - y0, ", ".join(f"{r.length:.1f}" for r in sim.robots))
-    keys = Keys(cfg.key_prefix, cfg.run_id)
-    with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
-        bus.serve(keys.world_map(), lambda: map_payload)
-        pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
-        bus.announce()
-        if not w.drive:
-            log.info("serving the map only (world.drive is off)")
-            stop.wait()
-            return 0
-        wanted = {str(i) for i in range(cfg.robots)}
-        for service in ("lidar", "learner"):
-            missing = bus.wait_alive(service, wanted, w.wait_for_consumers_s, stop)
-            if stop.is_set():
+    try:
+        keys = Keys(cfg.key_prefix, cfg.run_id)
+        with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
+            bus.serve(keys.world_map(), lambda: map_payload)
+            pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
+            bus.announce()
+            if not w.drive:
+                log.info("serving the map only (world.drive is off)")
+                stop.wait()
                 return 0
-            if missing:
-                log.warning("driving without %s %s (not alive after %.0f s)", service, sorted(missing), w.wait_for_consumers_s)
-        period = 1.0 / w.lidar_rate_hz
-        next_scan = 0.0
-        seq = 0
-        start = time.monotonic()
-        finished = [False] * cfg.robots
-        while not stop.is_set() and not all(finished):
-            if sim.t + 1e-9 >= next_scan:
-                poses = sim.poses()
-                angles, ranges, hit = sim.scan(poses)
-                for i, pub in enumerate(pubs):
-                    if finished[i]:
-                        continue
-                    last = sim.robots[i].done
-                    pub.put(Scan(run=cfg.run_id, sender=i, seq=seq, t=sim.t, pose=poses[i].tolist(),
-                                 max_range=w.lidar_max_range_m, angles=Tensor.of(angles[i], "<f4"),
-                                 ranges=Tensor.of(ranges[i], "<f4"), hit=Tensor.of(hit[i], "|u1"), last=last))
-                    finished[i] = last
-                seq += 1
-                next_scan += period
-            sim.step(w.sim_step_s)
-            if w.time_scale > 0:
-                ahead = sim.t / w.time_scale - (time.monotonic() - start)
-                if ahead > 0:
-                    stop.wait(ahead)
-        elapsed = time.monotonic() - start
-        log.info("traversal done: %d scans per robot, %.1f s simulated in %.1f s (real-time factor %.1f)",
-                 seq, sim.t, elapsed, sim.t / max(elapsed, 1e-9))
+            wanted = {str(i) for i in range(cfg.robots)}
+            for service in ("lidar", "learner"):
+                missing = bus.wait_alive(service, wanted, w.wait_for_consumers_s, stop)
+                if stop.is_set():
+                    return 0
+                if missing:
+                    log.warning("driving without %s %s (not alive after %.0f s)", service, sorted(missing), w.wait_for_consumers_s)
+            period = 1.0 / w.lidar_rate_hz
+            next_scan = 0.0
+            seq = 0
+            start = time.monotonic()
+            finished = [False] * cfg.robots
+            while not stop.is_set() and not all(finished):
+                if sim.t + 1e-9 >= next_scan:
+                    poses = sim.poses()
+                    angles, ranges, hit = sim.scan(poses)
+                    for i, pub in enumerate(pubs):
+                        if finished[i]:
+                            continue
+                        last = sim.robots[i].done
+                        pub.put(Scan(run=cfg.run_id, sender=i, seq=seq, t=sim.t, pose=poses[i].tolist(),
+                                     max_range=w.lidar_max_range_m, angles=Tensor.of(angles[i], "<f4"),
+                                     ranges=Tensor.of(ranges[i], "<f4"), hit=Tensor.of(hit[i], "|u1"), last=last))
+                        finished[i] = last
+                    seq += 1
+                    next_scan += period
+                sim.step(w.sim_step_s)
+                if w.time_scale > 0:
+                    ahead = sim.t / w.time_scale - (time.monotonic() - start)
+                    if ahead > 0:
+                        stop.wait(ahead)
+            elapsed = time.monotonic() - start
+            log.info("traversal done: %d scans per robot, %.1f s simulated in %.1f s (real-time factor %.1f)",
+                     seq, sim.t, elapsed, sim.t / max(elapsed, 1e-9))
+            stop.wait()  # keep serving the map until told to stop
+    finally:
         sim.close()
-        stop.wait()  # keep serving the map until told to stop
     return 0

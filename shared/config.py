@@ -85,6 +85,8 @@ class WorldSettings(Section):
     lidar_max_range_m: float = Field(3.5, gt=0, description="farthest measurable range (m)")
     lidar_height_m: float = Field(0.18, gt=0, description="LiDAR height above the floor (m)")
     lidar_rate_hz: float = Field(5.0, gt=0, le=100, description="scans per simulated second")
+    ray_batch: Literal["robot", "all"] = Field(
+        "robot", description="one rayTestBatch per robot, or one for all robots' rays (bench/lidar_rays.py: per robot is faster here)")
     val_scans: int = Field(300, ge=1, description="validation scans from random free poses")
     val_beams: int = Field(60, ge=1, description="beams per validation scan")
     wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for every lidar and learner to be alive before driving")

@@ -3,7 +3,8 @@
 :class:`FourierNet` is DiNNO's network: a sine (SIREN) first layer, ReLU hidden layers and a
 sigmoid output, mapping a world point (x, y) in metres to an occupancy probability. Inputs are
 taken in metres from the map's centre (a fixed buffer, so a saved model is self-contained), so
-the sine layer's ``scale`` means the same spatial frequency on every plan. Parameters travel as one flat float32 vector (DiNNO's ``parameters_to_vector``).
+the sine layer's ``scale`` means the same spatial frequency on every plan. Parameters travel
+as one flat float32 vector (DiNNO's ``parameters_to_vector``).
 """
 
 from __future__ import annotations

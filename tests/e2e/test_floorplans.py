@@ -32,7 +32,7 @@ def cubicasa_run(tmp_path_factory):
         pytest.skip("kit data ../shared/data/cubicasa5k not present")
     base = tmp_path_factory.mktemp("cubicasa")
     up("--floorplan", str(CUBICASA), "--robots", "3", "--preset", "smoke", "--run-dir", str(base / "live"),
-       "--set", f"up.record={base / 'rec'}")
+       "--record", str(base / "rec"))
     return base
 
 
@@ -48,7 +48,7 @@ def test_replay_from_recordings_alone_gives_the_recorded_points(cubicasa_run):
     rec = cubicasa_run / "rec"
     assert sorted(p.name for p in rec.iterdir()) == ["robot-0.swrec", "robot-1.swrec", "robot-2.swrec"]
     replay_dir = cubicasa_run / "replay"
-    up("--set", f"up.replay={rec}", "--run-dir", str(replay_dir), "--preset", "smoke")
+    up("--replay", str(rec), "--run-dir", str(replay_dir), "--preset", "smoke")
     live = cubicasa_run / "live"
     for robot in range(3):
         a = np.load(live / "data" / f"robot-{robot}.npz")
