@@ -36,7 +36,8 @@ def turtlebot_urdf() -> str:
     lx, ly, lz = LIDAR_OFFSET
     parts = [
         '<?xml version="1.0"?>\n<robot name="swarmmap_turtlebot">\n',
-        '  <link name="base_footprint"/>\n',
+        '  <link name="base_footprint"><inertial><mass value="0.001"/>'
+        '<inertia ixx="1e-6" ixy="0" ixz="0" iyy="1e-6" iyz="0" izz="1e-6"/></inertial></link>\n',
         _link("base_link", '<box size="0.138 0.178 0.143"/>', "-0.032 0 0.0795", 0.8, "0.2 0.2 0.2 1"),
         _joint("base_joint", "base_footprint", "base_link", "0 0 0.010"),
         _link("wheel_left", '<cylinder radius="0.033" length="0.018"/>', "0 0 0", 0.03, "0.1 0.1 0.1 1"),
