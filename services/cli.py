@@ -38,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "up":
             p.add_argument("--rounds", dest="learner.rounds", default=argparse.SUPPRESS,
                            help="communication rounds per learner (learner.rounds)")
+            p.add_argument("--transport", dest="learner.transport", default=argparse.SUPPRESS, metavar="{zenoh,inproc}",
+                           help="Algorithm 1 over Zenoh, one learner process per robot (default), or in one process (learner.transport)")
             p.add_argument("--floorplan", dest="world.floorplan", default=argparse.SUPPRESS,
                            help="procedural, a CubiCasa5K model.svg or a DiNNO .png (world.floorplan)")
             p.add_argument("--waypoints", dest="world.waypoints", default=argparse.SUPPRESS,

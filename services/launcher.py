@@ -178,8 +178,11 @@ class Launcher:
                 bus.subscribe(self.keys.metrics("*"), Metrics, lambda m: self.on_metrics(recorder, m))
                 self.wait_alive(bus, "router", {"0"})
                 ids = {str(i) for i in range(cfg.robots)}
+                if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
+                    self.spawn("learner", 0)
                 for i in range(cfg.robots):
-                    self.spawn("learner", i, "--robot", str(i))
+                    if cfg.learner.transport == "zenoh":
+                        self.spawn("learner", i, "--robot", str(i))
                     self.spawn("lidar", i, "--robot", str(i))
                 self.wait_alive(bus, "learner", ids)
                 self.wait_alive(bus, "lidar", ids)
@@ -224,14 +227,16 @@ class Launcher:
 
     def write_summary(self, recorder: MetricsRecorder, wall: float) -> None:
         robots = {}
-        for c in self.children:
-            if c.service != "learner":
+        learners = {c.ident: c for c in self.children if c.service == "learner"}
+        for robot in range(self.cfg.robots):
+            c = learners.get(robot) or learners.get(0)  # in-process: learner-0 serves every robot
+            if c is None:
                 continue
-            first, last = recorder.first.get(c.ident), recorder.final.get(c.ident) or recorder.latest.get(c.ident)
-            robots[str(c.ident)] = {
+            first, last = recorder.first.get(robot), recorder.final.get(robot) or recorder.latest.get(robot)
+            robots[str(robot)] = {
                 "pid": c.proc.pid,
                 "exit_code": c.proc.returncode,
-                "finished": c.ident in recorder.final,
+                "finished": robot in recorder.final,
                 "rounds": last.round if last else 0,
                 "first_val_bce": first.val_bce if first else None,
                 "final_val_bce": last.val_bce if last else None,
@@ -245,6 +250,7 @@ class Launcher:
             "preset": self.cfg.preset,
             "robots": self.cfg.robots,
             "rounds": self.cfg.learner.rounds,
+            "transport": self.cfg.learner.transport,
             "wall_time_s": round(wall, 3),
             "services": {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode} for c in self.children},
             "learners": robots,

@@ -102,7 +102,7 @@ class Bus:
         self.dropped: collections.Counter[str] = collections.Counter()
         self._logged: set[tuple[str, str]] = set()
         self._handles: list[Any] = []
-        self._token: Any = None
+        self._tokens: dict[str, Any] = {}
 
     @classmethod
     def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0) -> Bus:
@@ -125,11 +125,13 @@ class Bus:
 
     # -- liveliness
 
-    def announce(self) -> None:
-        """Declare this service's liveliness token (do it after its subscribers are declared,
-        so whoever sees the token can already reach them)."""
-        if self._token is None:
-            self._token = self.session.liveliness().declare_token(self.keys.alive(self.service, self.ident))
+    def announce(self, ident: int | str | None = None) -> None:
+        """Declare this service's liveliness token, or the one of ``ident`` when a process
+        serves several (do it after the subscribers are declared, so whoever sees the token can
+        already reach them)."""
+        ident = str(self.ident if ident is None else ident)
+        if ident not in self._tokens:
+            self._tokens[ident] = self.session.liveliness().declare_token(self.keys.alive(self.service, ident))
 
     def alive(self, service: str = "*") -> set[tuple[str, str]]:
         """(service, id) of every live token of this run, optionally of one service."""
@@ -240,11 +242,11 @@ class Bus:
             except Exception:
                 pass
         self._handles.clear()
-        if self._token is not None:
+        for token in self._tokens.values():
             try:
-                self._token.undeclare()
+                token.undeclare()
             except Exception:
                 pass
-            self._token = None
+        self._tokens.clear()
         self.session.close()
 

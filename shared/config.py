@@ -124,6 +124,8 @@ class LearnerSettings(Section):
     """A learner: DiNNO consensus training of an implicit occupancy network (Algorithm 1)."""
 
     robot: int | None = Field(None, ge=0, description="which robot this learner serves (0..robots-1)")
+    transport: Literal["zenoh", "inproc"] = Field(
+        "zenoh", description="Algorithm 1 over Zenoh (one process per robot) or in memory (one process serves every robot)")
     rounds: int = Field(200, ge=1, description="communication rounds of Algorithm 1 (DiNNO outer iterations)")
     primal_iterations: int = Field(5, ge=1, description="optimizer steps per round")
     batch_size: int = Field(4096, ge=1, description="training points per optimizer step")
@@ -134,9 +136,19 @@ class LearnerSettings(Section):
     rho_init: float = Field(0.3, ge=0, description="initial ADMM penalty rho")
     rho_growth: float = Field(1.0004, ge=1.0, description="rho is multiplied by this each round")
     graph: Literal["complete", "ring"] = Field("complete", description="communication graph")
+    model: Literal["fourier", "bnn"] = Field("fourier", description="DiNNO's deterministic FourierNet, or the paper's Bayesian network")
     model_shape: list[int] = Field(
         default_factory=lambda: [2, 256, 64, 64, 64, 1],
-        description="FourierNet layer widths: input 2, sine layer, ReLU layers, output 1")
+        description="layer widths: input 2, sine layer, hidden ReLU layers (Bayesian for bnn), output 1")
+    regularization: Literal["uniform-l2", "separate-l2", "separate-kl"] = Field(
+        "separate-kl", description="bnn consensus regularisation (the paper's Figure 7); separate-kl is Algorithm 2")
+    kl_weight: float = Field(5e-3, ge=0, description="bnn: weight of the KL to the prior in the loss (equation 7)")
+    prior_sigma: float = Field(0.1, gt=0, description="bnn: standard deviation of the Gaussian prior")
+    bnn_rho_init: float = Field(-5.0, description="bnn: initial rho of every weight and bias (sigma = softplus(rho))")
+    w_mu: float = Field(1.0, ge=0, description="Algorithm 2: W_mu, the mu-regularisation weight, as a multiple of rho")
+    w_rho: float = Field(1.0, ge=0, description="Algorithm 2: W_rho, the rho-regularisation weight, as a multiple of rho")
+    mc_samples: int = Field(50, ge=1, description="bnn: forward passes per point for the mean and std maps")
+    optimizer_per_round: bool = Field(True, description="re-create the optimizer every round (DiNNO's default) or keep it")
     siren_scale: float = Field(5.0, gt=0, description="frequency scale of the sine layer (inputs in metres from the map centre)")
     eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
     map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
@@ -168,7 +180,7 @@ class UpSettings(Section):
 class RunConfig(Section):
     """The whole resolved configuration of one run (``RUN_DIR/config.yaml``)."""
 
-    preset: str | None = Field(None, description="named preset applied under the config file (smoke, demo)")
+    preset: str | None = Field(None, description="named preset applied under the config file (smoke, demo, dinno)")
     run_id: str = Field("default", pattern=NAME_PATTERN, description="run id: every key lives under <key_prefix>/<run_id>")
     key_prefix: str = Field("swarmmap", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$", description="first chunks of every key expression")
     robots: int = Field(3, ge=1, le=64, description="number of robots (and lidar streamers and learners)")
@@ -225,6 +237,25 @@ PRESETS: dict[str, dict[str, Any]] = {
         "learner": {"rounds": 800, "primal_iterations": 5, "batch_size": 2048,
                     "model_shape": [2, 256, 64, 64, 64, 1], "lr_start": 3e-3, "lr_finish": 3e-4,
                     "rho_init": 0.03, "eval_every": 20, "map_resolution_m": 0.05},
+    },
+    # DiNNO's published mapping setting (experiments/dist_online_dense_PAPER.yaml) for its
+    # floor plan: run with --floorplan .../dinno-floorplan-32/floor_img.png --waypoints
+    # .../tight_paths. A 20-beam noiseless LiDAR whose beam is 0.2 x the image's larger side
+    # (433 px = 4.334 m at 100 px/m), 25 samples a beam, 500 validation scans; FourierNet
+    # [2, 256, 64, 64, 64, 1]; rho 0.3 x1.0004 a round, 5 Adam steps a round, lr 1e-3 -> 1e-4
+    # (log), batch 12,500, 4000 rounds (shorten with --rounds). Training is offline here
+    # (DiNNO's sliding window of 800 scans is not implemented yet).
+    "dinno": {
+        "robots": 7,
+        "world": {"lidar_beams": 20, "lidar_fov_deg": 360.0, "lidar_min_range_m": 0.01, "lidar_max_range_m": 4.334,
+                  "pixels_per_metre": 100.0, "dinno_border_px": 30, "val_scans": 500, "val_beams": 20,
+                  "speed_mps": 0.5, "lidar_rate_hz": 5.0},
+        "lidar": {"samples_per_beam": 25, "range_noise_std_m": 0.0, "dropout_prob": 0.0, "sampling": "fixed",
+                  "occupied_depth_m": 0.01},
+        "learner": {"model": "fourier", "rounds": 4000, "primal_iterations": 5, "batch_size": 12500,
+                    "model_shape": [2, 256, 64, 64, 64, 1], "optimizer": "adam", "lr_start": 1e-3, "lr_finish": 1e-4,
+                    "lr_schedule": "log", "rho_init": 0.3, "rho_growth": 1.0004, "optimizer_per_round": True,
+                    "graph": "complete", "eval_every": 20, "map_resolution_m": 0.05},
     },
 }
 DEFAULT_PRESET = "demo"

@@ -58,14 +58,28 @@ class FourierNet(nn.Module):
         return torch.sigmoid(self.logits(xy))
 
 
-def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int) -> FourierNet:
-    """A FourierNet initialised from ``seed`` (every learner of a run starts from the same one, as in DiNNO)."""
+def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int,
+                kind: str = "fourier", prior_sigma: float = 0.1, rho_init: float = -5.0) -> nn.Module:
+    """A FourierNet (``kind`` fourier) or the paper's BayesNet (bnn) initialised from ``seed``
+    (every learner of a run starts from the same one, as in DiNNO)."""
+    from swarmmap.shared.bnn import BayesNet
+
     gen_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:
-        return FourierNet(shape, scale, bounds)
+        if kind == "fourier":
+            return FourierNet(shape, scale, bounds)
+        if kind == "bnn":
+            return BayesNet(shape, scale, bounds, prior_sigma, rho_init)
+        raise ValueError(f"unknown model {kind!r}; allowed: fourier, bnn")
     finally:
         torch.random.set_rng_state(gen_state)
+
+
+def model_from_settings(settings, bounds: tuple[float, float, float, float], seed: int) -> nn.Module:
+    """The model a LearnerSettings describes."""
+    return build_model(settings.model_shape, settings.siren_scale, bounds, seed, settings.model,
+                       settings.prior_sigma, settings.bnn_rho_init)
 
 
 def get_flat(model: nn.Module) -> torch.Tensor:
@@ -104,20 +118,25 @@ def predict(model: FourierNet, points: np.ndarray, batch: int = 65536) -> np.nda
     return np.concatenate(out) if out else np.zeros(0, dtype=np.float32)
 
 
-def save_model(model: FourierNet, path: Path, **meta: object) -> None:
-    """Write the model (state dict, shape, scale and ``meta``) atomically."""
+def save_model(model: nn.Module, path: Path, **meta: object) -> None:
+    """Write the model (kind, state dict, shape, scale and ``meta``) atomically."""
     import io
 
+    from swarmmap.shared.bnn import BayesNet
+
+    kind = "bnn" if isinstance(model, BayesNet) else "fourier"
+    extra = {"prior_sigma": model.bayes_layers()[0].prior_sigma} if kind == "bnn" and model.bayes_layers() else {}
     buf = io.BytesIO()
-    torch.save({"kind": "fourier", "shape": model.shape, "scale": model.scale,
-                "state_dict": model.state_dict(), "meta": meta}, buf)
+    torch.save({"kind": kind, "shape": model.shape, "scale": model.scale, "state_dict": model.state_dict(),
+                "meta": meta, **extra}, buf)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def load_model(path: Path) -> FourierNet:
+def load_model(path: Path) -> nn.Module:
     """Load a model written by :func:`save_model`."""
     doc = torch.load(path, map_location="cpu", weights_only=True)
-    model = FourierNet(doc["shape"], doc["scale"], (0.0, 0.0, 1.0, 1.0))
+    model = build_model(doc["shape"], doc["scale"], (0.0, 0.0, 1.0, 1.0), 0, doc.get("kind", "fourier"),
+                        doc.get("prior_sigma", 0.1))
     model.load_state_dict(doc["state_dict"])
     return model
 

@@ -1,10 +1,22 @@
-"""DiNNO's node update (Yu, Vincent & Schwager 2022), free of any transport.
+"""DiNNO's node update (Yu, Vincent & Schwager 2022) and the paper's Algorithm 2, free of any transport.
 
 Per round k, for node i with neighbour parameters theta_j (as DiNNO's ``optimizers/dinno.py``):
 rho <- rho * growth; duals p_i += rho * sum_j (theta_i - theta_j); targets
 theta_reg_j = (theta_i + theta_j) / 2; then ``primal_iterations`` optimizer steps on
-``BCE(batch) + <theta, p_i> + rho * sum_j ||theta - theta_reg_j||^2`` with a fresh optimizer
-whose learning rate follows the schedule. A node without neighbours takes plain BCE steps.
+``loss(batch) + <theta, p_i> + rho * sum_j ||theta - theta_reg_j||^2`` with an optimizer
+re-created each round (or kept) whose learning rate follows the schedule. A node without
+neighbours takes plain loss steps. ``loss`` is BCE, plus ``kl_weight`` x the KL to the prior
+for a Bayesian network (the paper's equation 7).
+
+For a Bayesian network the consensus term follows ``regularization`` (the paper's Figure 7):
+``uniform-l2`` treats every parameter alike (one optimizer, as above); ``separate-l2`` and
+``separate-kl`` give the mu-parameters and the rho-parameters an optimizer each and weigh
+their penalties by W_mu = w_mu x rho and W_rho = w_rho x rho. ``separate-kl`` is Algorithm 2:
+L2 for mu, and for rho the KL divergence (equation 6) between N(0, softplus(rho_i)^2) and
+N(0, softplus(rho_reg_j)^2) summed over parameters and neighbours: the two Gaussians share
+their mean, so the term pulls only the spreads together, on the scale of the spreads rather
+than of raw rho values. Both losses are back-propagated before either optimizer steps, so rho
+also learns from the prediction loss.
 """
 
 from __future__ import annotations
@@ -15,8 +27,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from swarmmap.shared.bnn import BayesNet, gaussian_kl, is_rho
 from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.models import FourierNet, get_flat, set_flat
+from swarmmap.shared.models import get_flat, set_flat
 
 
 def lr_schedule(kind: str, start: float, finish: float, rounds: int) -> np.ndarray:
@@ -43,7 +56,7 @@ def make_optimizer(kind: str, params, lr: float) -> torch.optim.Optimizer:
 class DinnoNode:
     """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE."""
 
-    def __init__(self, model: FourierNet, points: torch.Tensor, labels: torch.Tensor,
+    def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
                  settings: LearnerSettings, seed: int):
         self.model = model
         self.device = next(model.parameters()).device
@@ -54,14 +67,52 @@ class DinnoNode:
         self.duals = torch.zeros_like(get_flat(model))
         self.lrs = lr_schedule(settings.lr_schedule, settings.lr_start, settings.lr_finish, settings.rounds)
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
+        self.bayesian = isinstance(model, BayesNet)
+        if self.bayesian:
+            noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
+            model.use_generator(noise)
+        names = [n for n, _ in model.named_parameters()]
+        params = list(model.parameters())
+        rho_flags = torch.cat([torch.full((p.numel(),), is_rho(n), dtype=torch.bool) for n, p in zip(names, params)])
+        self.rho_mask = rho_flags.to(self.device)
+        self.strategy = settings.regularization if self.bayesian else "uniform-l2"
+        if self.strategy == "uniform-l2":
+            self.groups = [params]
+        else:
+            self.groups = [[p for n, p in zip(names, params) if not is_rho(n)], [p for n, p in zip(names, params) if is_rho(n)]]
+        self.optimizers = None if settings.optimizer_per_round else self._optimizers(float(self.lrs[0]))
+
+    def _optimizers(self, lr: float) -> list[torch.optim.Optimizer]:
+        return [make_optimizer(self.s.optimizer, group, lr) for group in self.groups if group]
+
+    def mu_rho_split(self) -> tuple[int, int]:
+        """How many parameters are mu and how many rho (Algorithm 2's two groups)."""
+        n_rho = int(self.rho_mask.sum())
+        return self.rho_mask.numel() - n_rho, n_rho
 
     def state(self) -> np.ndarray:
         return get_flat(self.model).cpu().numpy().astype(np.float32)
 
     def batch_loss(self) -> torch.Tensor:
+        """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
         idx = torch.randint(0, len(self.points), (min(self.s.batch_size, len(self.points)),), generator=self.gen)
         idx = idx.to(self.device)
-        return F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
+        loss = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
+        if self.bayesian and self.s.kl_weight > 0:
+            loss = loss + self.s.kl_weight * self.model.kl()
+        return loss
+
+    def consensus_penalty(self, th: torch.Tensor, th_reg: torch.Tensor) -> torch.Tensor:
+        """The round's pull towards the neighbours' midpoints ``th_reg`` (one row per neighbour)."""
+        if self.strategy == "uniform-l2":
+            return self.rho * torch.sum(torch.square(th[None, :] - th_reg))
+        mu, rho = ~self.rho_mask, self.rho_mask
+        penalty = self.s.w_mu * self.rho * torch.sum(torch.square(th[mu][None, :] - th_reg[:, mu]))
+        if self.strategy == "separate-l2":
+            return penalty + self.s.w_rho * self.rho * torch.sum(torch.square(th[rho][None, :] - th_reg[:, rho]))
+        sigma = F.softplus(th[rho])[None, :].expand(len(th_reg), -1)
+        kl = gaussian_kl(torch.zeros_like(sigma), sigma, 0.0, F.softplus(th_reg[:, rho]))
+        return penalty + self.s.w_rho * self.rho * kl.sum()
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """One DiNNO round for this node given neighbours' parameters of round ``k``."""
@@ -73,26 +124,41 @@ class DinnoNode:
             thj = torch.stack([torch.as_tensor(p, device=self.device) for p in peers.values()])
             self.duals += self.rho * torch.sum(th_i - thj, dim=0)
             th_reg = (thj + th_i) / 2
-        opt = make_optimizer(self.s.optimizer, self.model.parameters(), float(self.lrs[min(k, len(self.lrs) - 1)]))
+        lr = float(self.lrs[min(k, len(self.lrs) - 1)])
+        if self.optimizers is None:
+            optimizers = self._optimizers(lr)
+        else:
+            optimizers = self.optimizers
+            for opt in optimizers:
+                for group in opt.param_groups:
+                    group["lr"] = lr
         for _ in range(self.s.primal_iterations):
-            opt.zero_grad()
+            for opt in optimizers:
+                opt.zero_grad()
             loss = self.batch_loss()
             if th_reg is not None:
                 th = torch.nn.utils.parameters_to_vector(self.model.parameters())
-                reg = torch.sum(torch.square(th[None, :] - th_reg))
-                loss = loss + torch.dot(th, self.duals) + self.rho * reg
-            loss.backward()
-            opt.step()
+                loss = loss + torch.dot(th, self.duals) + self.consensus_penalty(th, th_reg)
+            loss.backward()  # one backward of the sum: both groups' gradients before either step
+            for opt in optimizers:
+                opt.step()
         return self.state()
 
 
 @torch.no_grad()
-def validation_bce(model: FourierNet, points: torch.Tensor, labels: torch.Tensor, batch: int = 65536) -> float:
-    """Mean binary cross-entropy of ``model`` over a validation set."""
+def validation_bce(model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor, batch: int = 65536) -> float:
+    """Mean binary cross-entropy of ``model`` over a validation set (for a Bayesian network,
+    of its prediction: the mean of the sampled passes' probabilities, 10 passes)."""
     total = 0.0
+    bayesian = isinstance(model, BayesNet)
     for s in range(0, len(points), batch):
-        logits = model.logits(points[s : s + batch])
-        total += float(F.binary_cross_entropy_with_logits(logits, labels[s : s + batch], reduction="sum"))
+        xy, y = points[s : s + batch], labels[s : s + batch]
+        if bayesian:
+            with model.noise(seed=s):
+                p = torch.stack([model(xy) for _ in range(10)]).mean(0).clamp(1e-7, 1 - 1e-7)
+            total += float(F.binary_cross_entropy(p, y, reduction="sum"))
+        else:
+            total += float(F.binary_cross_entropy_with_logits(model.logits(xy), y, reduction="sum"))
     return total / max(len(points), 1)
 
 

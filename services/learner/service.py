@@ -24,13 +24,14 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.dinno import DinnoNode, consensus_error, validation_bce
-from swarmmap.services.learner.exchange import ExchangeStats, PeerFailure, run_algorithm1
+from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
+from swarmmap.shared.bnn import BayesNet, predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import build_model, param_count, pick_device, predict, save_model, set_flat
+from swarmmap.shared.models import model_from_settings, param_count, pick_device, save_model, set_flat
 from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap
 
 log = logging.getLogger("learner")
@@ -45,13 +46,17 @@ def neighbours_of(robot: int, robots: int, graph: str) -> set[int]:
     raise ValueError(f"unknown graph {graph!r}; allowed: complete, ring")
 
 
-def exchange_bytes(bus: Bus) -> tuple[int, int]:
-    """Bytes sent and received on Algorithm 1's keys (State and RoundComplete)."""
+def exchange_bytes(bus: Bus, robot: int) -> tuple[int, int]:
+    """Bytes ``robot`` sent and received on Algorithm 1's keys (State and RoundComplete) over Zenoh."""
+    own = (bus.keys.state(robot), bus.keys.round_complete(robot))
 
-    def exchange(key: str) -> bool:
-        return key.endswith(("/state", "/round-complete"))
+    def sent(key: str) -> bool:
+        return key in own
 
-    return bus.sent.bytes_where(exchange), bus.received.bytes_where(exchange)
+    def received(key: str) -> bool:
+        return key.endswith(("/state", "/round-complete")) and key not in own
+
+    return bus.sent.bytes_where(sent), bus.received.bytes_where(received)
 
 
 class Collector:
@@ -77,97 +82,164 @@ class Collector:
             return np.concatenate(self.points), np.concatenate(self.labels)
 
 
+class LearnerError(RuntimeError):
+    """A learner cannot go on; ``status`` is the process exit status it asks for."""
+
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
+
+
+class RobotLearner:
+    """One robot's learner: its data, model, DinnoNode and metrics, on a shared Bus."""
+
+    def __init__(self, cfg: RunConfig, robot: int, bus: Bus, device: torch.device):
+        self.cfg, self.robot, self.bus, self.device = cfg, robot, bus, device
+        self.s = cfg.learner
+        self.neighbours = neighbours_of(robot, cfg.robots, self.s.graph)
+        self.collector = Collector()
+        bus.subscribe(bus.keys.samples(robot), Samples, self.collector.add)
+        self.metrics_pub = bus.publisher(bus.keys.metrics(robot))
+        self.stats = ExchangeStats()
+        self.compute_s = 0.0
+        self.t_start = 0.0
+
+    def prepare(self, world: WorldMap, stop: threading.Event) -> None:
+        """Wait for the end of the traversal, then build the model and the node."""
+        s, robot = self.s, self.robot
+        if not (self.collector.done.wait(s.collect_timeout_s) or stop.is_set()):
+            raise LearnerError(f"robot {robot}: the traversal did not end within {s.collect_timeout_s:.0f} s "
+                               f"(no Samples with last=true on {self.bus.keys.samples(robot)})", 3)
+        if stop.is_set():
+            raise InterruptedError
+        self.points, self.labels = self.collector.arrays()
+        if len(self.points) == 0:
+            raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
+        log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(self.points), 100 * self.labels.mean())
+        model = model_from_settings(s, world.bounds, self.cfg.seed).to(self.device)
+        self.node = DinnoNode(model, torch.from_numpy(self.points.copy()), torch.from_numpy(self.labels.copy()), s,
+                              seed=self.cfg.seed * 1000 + robot + 1)
+        self.world = world
+        self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
+        self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
+
+    def publish_metrics(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
+        sent, received = exchange_bytes(self.bus, self.robot)
+        msg = Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=time.monotonic() - self.t_start,
+                      val_bce=validation_bce(self.node.model, self.val_x, self.val_y),
+                      consensus_error=consensus_error(theta, peers), bytes_sent=sent, bytes_received=received,
+                      compute_s=self.compute_s, wait_s=self.stats.wait_s, send_s=self.stats.send_s,
+                      n_points=len(self.points), pid=os.getpid(), final=final)
+        self.metrics_pub.put(msg)
+        return msg
+
+    def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        if k % self.s.eval_every == 0:
+            m = self.publish_metrics(k, theta, peers)
+            log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
+        t0 = time.perf_counter()
+        out = self.node.update(k, theta, peers)
+        self.compute_s += time.perf_counter() - t0
+        return out
+
+    def train(self, transport, stop: threading.Event) -> None:
+        """Algorithm 1 for ``rounds`` rounds over ``transport``, then the final metrics and outputs."""
+        s, robot = self.s, self.robot
+        self.t_start = time.monotonic()
+        try:
+            final = run_algorithm1(robot, self.neighbours, s.rounds, self.node.state(), self.node_update, transport,
+                                   stats=self.stats, stop=stop, peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
+        except PeerFailure as exc:
+            raise LearnerError(str(exc), 5) from None
+        set_flat(self.node.model, torch.from_numpy(final))
+        m = self.publish_metrics(s.rounds, final, self.stats.final_peers, final=True)
+        log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
+                 robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
+        if self.cfg.run_dir is not None:
+            write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
+
+
 def run(cfg: RunConfig, stop: threading.Event) -> int:
-    """The learner's main work; returns the process exit status."""
+    """The learner's main work; returns the process exit status.
+
+    With ``learner.transport`` zenoh the process serves robot ``learner.robot``; with inproc it
+    serves every robot of the run, each node in a thread of its own, exchanging State and
+    RoundComplete through memory (DiNNO's single-process setting) while data and metrics still
+    travel over Zenoh."""
     s = cfg.learner
-    robot = s.robot
-    if robot is None or robot >= cfg.robots:
-        fail(f"config error:\n  learner.robot: required, one of 0..{cfg.robots - 1} (got {robot!r})")
+    inproc = s.transport == "inproc"
+    if inproc:
+        robots = list(range(cfg.robots))
+    elif s.robot is None or s.robot >= cfg.robots:
+        fail(f"config error:\n  learner.robot: required, one of 0..{cfg.robots - 1} (got {s.robot!r})")
+    else:
+        robots = [s.robot]
     torch.set_num_threads(s.torch_threads)
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
-    neighbours = neighbours_of(robot, cfg.robots, s.graph)
-    n_params = param_count(build_model(s.model_shape, s.siren_scale, (0, 0, 1, 1), cfg.seed))
-    collector = Collector()
-    with Bus.open(cfg.zenoh, keys, "learner", robot) as bus:
-        bus.subscribe(keys.samples(robot), Samples, collector.add)
-        transport = ZenohTransport(bus, robot, neighbours, n_params)
-        metrics_pub = bus.publisher(keys.metrics(robot))
-        bus.announce()
+    n_params = param_count(model_from_settings(s, (0, 0, 1, 1), cfg.seed))
+    with Bus.open(cfg.zenoh, keys, "learner", robots[0]) as bus:
+        learners = [RobotLearner(cfg, r, bus, device) for r in robots]
+        if inproc:
+            hub = MemoryHub({r.robot: r.neighbours for r in learners})
+            transports = {r.robot: hub.transport(r.robot) for r in learners}
+        else:
+            transports = {robots[0]: ZenohTransport(bus, robots[0], learners[0].neighbours, n_params)}
+        for r in robots:
+            bus.announce(r)
         world = bus.query(keys.world_map(), WorldMap, timeout=s.collect_timeout_s, stop=stop)
         if world is None:
             if stop.is_set():
                 return 0
             log.error("no reply from the world on %s within %.0f s", keys.world_map(), s.collect_timeout_s)
             return 3
-        log.info("robot %d: %d neighbours %s, model %s (%d parameters) on %s", robot, len(neighbours),
-                 sorted(neighbours), s.model_shape, n_params, device)
-        if not (collector.done.wait(s.collect_timeout_s) or stop.is_set()):
-            log.error("robot %d: the traversal did not end within %.0f s (no Samples with last=true on %s)",
-                      robot, s.collect_timeout_s, keys.samples(robot))
-            return 3
-        if stop.is_set():
-            return 0
-        points, labels = collector.arrays()
-        if len(points) == 0:
-            log.error("robot %d: the traversal ended without a single training point", robot)
-            return 3
-        log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(points), 100 * labels.mean())
-        model = build_model(s.model_shape, s.siren_scale, world.bounds, cfg.seed).to(device)
-        node = DinnoNode(model, torch.from_numpy(points.copy()), torch.from_numpy(labels.copy()), s,
-                         seed=cfg.seed * 1000 + robot + 1)
-        val_x = torch.from_numpy(world.val_points.numpy().copy()).to(device)
-        val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(device)
-        missing = bus.wait_alive("learner", {str(j) for j in neighbours}, s.peer_timeout_s, stop)
-        if missing and not stop.is_set():
-            log.error("robot %d: neighbour learner(s) %s never came alive", robot, sorted(missing))
-            return 4
-
-        stats = ExchangeStats()
-        compute = {"s": 0.0}
-        t_start = time.monotonic()
-
-        def publish_metrics(k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
-            sent, received = exchange_bytes(bus)
-            msg = Metrics(run=cfg.run_id, sender=robot, round=k, wall_time_s=time.monotonic() - t_start,
-                          val_bce=validation_bce(node.model, val_x, val_y),
-                          consensus_error=consensus_error(theta, peers), bytes_sent=sent, bytes_received=received,
-                          compute_s=compute["s"], wait_s=stats.wait_s, send_s=stats.send_s,
-                          n_points=len(points), pid=os.getpid(), final=final)
-            metrics_pub.put(msg)
-            return msg
-
-        def node_update(k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
-            if k % s.eval_every == 0:
-                m = publish_metrics(k, theta, peers)
-                log.info("robot %d round %d: val_bce %.4f consensus %.4f", robot, k, m.val_bce, m.consensus_error)
-            t0 = time.perf_counter()
-            out = node.update(k, theta, peers)
-            compute["s"] += time.perf_counter() - t0
-            return out
-
+        log.info("robots %s (%s transport): model %s %s (%d parameters) on %s", robots, s.transport, s.model,
+                 s.model_shape, n_params, device)
         try:
-            final = run_algorithm1(robot, neighbours, s.rounds, node.state(), node_update, transport, stats=stats,
-                                   stop=stop, peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
-        except PeerFailure as exc:
+            for learner in learners:
+                learner.prepare(world, stop)
+            wanted = set().union(*(r.neighbours for r in learners)) - set(robots)
+            missing = bus.wait_alive("learner", {str(j) for j in wanted}, s.peer_timeout_s, stop)
+            if missing and not stop.is_set():
+                raise LearnerError(f"neighbour learner(s) {sorted(missing)} never came alive", 4)
+            run_all(learners, transports, stop)
+        except LearnerError as exc:
             log.error("%s", exc)
-            return 5
+            return exc.status
         except InterruptedError:
-            log.info("robot %d: stopped", robot)
+            log.info("robots %s: stopped", robots)
             return 0
-        set_flat(node.model, torch.from_numpy(final))
-        m = publish_metrics(s.rounds, final, stats.final_peers, final=True)
-        log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
-                 robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
-        if cfg.run_dir is not None:
-            write_outputs(cfg, robot, node.model, world, points, labels)
         # Stay until every neighbour has its final State from us (they linger likewise).
         stop.wait(0.5)
     return 0
 
 
+def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:
+    """Train every learner, each in a thread of its own when there are several."""
+    if len(learners) == 1:
+        learners[0].train(transports[learners[0].robot], stop)
+        return
+    errors: list[BaseException] = []
+
+    def train(learner: RobotLearner) -> None:
+        try:
+            learner.train(transports[learner.robot], stop)
+        except BaseException as exc:  # re-raised in the caller's thread
+            errors.append(exc)
+            stop.set()
+
+    threads = [threading.Thread(target=train, args=(r,), name=f"robot-{r.robot}") for r in learners]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+
+
 def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap, points: np.ndarray, labels: np.ndarray) -> None:
-    """The model checkpoint, its mean map PNG and the robot's training points, written atomically."""
+    """The model checkpoint, its mean map PNG (and for a BNN its std map PNG and both as .npz)
+    and the robot's training points, written atomically."""
     run_dir = cfg.run_dir
     buf = io.BytesIO()
     np.savez_compressed(buf, points=points, labels=labels)
@@ -176,4 +248,12 @@ def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap, points: np
                run_id=cfg.run_id)
     grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
     pts, (h, w) = grid.centres(cfg.learner.map_resolution_m)
-    save_png(run_dir / "maps" / f"robot-{robot}-mean.png", predict(model, pts).reshape(h, w))
+    mean, std = predict_mean_std(model, pts, samples=cfg.learner.mc_samples)
+    save_png(run_dir / "maps" / f"robot-{robot}-mean.png", mean.reshape(h, w))
+    if isinstance(model, BayesNet):
+        # Darker = more uncertain, on a fixed scale (std of a probability is at most 0.5).
+        save_png(run_dir / "maps" / f"robot-{robot}-std.png", np.clip(std.reshape(h, w) / 0.5, 0, 1))
+        buf = io.BytesIO()
+        np.savez_compressed(buf, mean=mean.reshape(h, w), std=std.reshape(h, w), origin=np.asarray(grid.origin),
+                            resolution=cfg.learner.map_resolution_m)
+        atomic_write_bytes(run_dir / "maps" / f"robot-{robot}.npz", buf.getvalue())

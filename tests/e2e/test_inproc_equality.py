@@ -1,0 +1,44 @@
+"""The proof that the distributed learner is DiNNO: with the same seeds and data, the
+multi-process Zenoh run and the in-process run (every node in one process, as in DiNNO's own
+code) end with the same parameters and the same validation loss."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from swarmmap.shared.models import load_model
+from tests.e2e.test_up import clean_env
+
+pytestmark = pytest.mark.e2e
+
+
+def run(run_dir, *extra):
+    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--robots", "3",
+                           "--rounds", "12", "--seed", "5", "--run-dir", str(run_dir), *extra],
+                          capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("model", ["fourier", "bnn"])
+def test_zenoh_run_equals_inproc_run(tmp_path, model):
+    extra = ["--set", f"learner.model={model}"]
+    if model == "bnn":
+        extra += ["--set", "learner.model_shape=[2,64,32,32,1]"]
+    zenoh = run(tmp_path / "zenoh", *extra)
+    inproc = run(tmp_path / "inproc", "--transport", "inproc", *extra)
+    assert zenoh["transport"] == "zenoh" and inproc["transport"] == "inproc"
+    assert len({v["pid"] for v in zenoh["learners"].values()}) == 3
+    assert len({v["pid"] for v in inproc["learners"].values()}) == 1
+    for robot in "012":
+        a = load_model(tmp_path / "zenoh" / "models" / f"robot-{robot}.pt").state_dict()
+        b = load_model(tmp_path / "inproc" / "models" / f"robot-{robot}.pt").state_dict()
+        for name in a:
+            torch.testing.assert_close(a[name], b[name], rtol=0, atol=1e-6, msg=f"robot {robot} {name}")
+        assert zenoh["learners"][robot]["final_val_bce"] == pytest.approx(inproc["learners"][robot]["final_val_bce"],
+                                                                          abs=1e-6)

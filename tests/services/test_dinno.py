@@ -1,0 +1,78 @@
+"""The node update: DiNNO on FourierNets, the three regularisation strategies on BNNs, and
+the in-process run that the Zenoh run must equal."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from swarmmap.services.learner.dinno import DinnoNode, validation_bce
+from swarmmap.shared.config import LearnerSettings
+from swarmmap.shared.models import model_from_settings
+
+BOUNDS = (0.0, 0.0, 4.0, 4.0)
+
+
+def toy_data(node: int, n: int = 3000):
+    """Points of a 4 x 4 m box with a wall along x = 2: each node sees a different strip."""
+    rng = np.random.default_rng(node)
+    x = rng.uniform(0, 4, size=(n, 2)).astype(np.float32)
+    x[:, 1] = (x[:, 1] + node * 4 / 3) % 4
+    y = (np.abs(x[:, 0] - 2.0) < 0.15).astype(np.float32)
+    return torch.from_numpy(x), torch.from_numpy(y)
+
+
+def run_inproc(settings: LearnerSettings, nodes: int = 3, rounds: int = 6):
+    models = [model_from_settings(settings, BOUNDS, seed=0) for _ in range(nodes)]
+    dn = [DinnoNode(m, *toy_data(i), settings, seed=i + 1) for i, m in enumerate(models)]
+    th = {i: dn[i].state() for i in range(nodes)}
+    for k in range(rounds):
+        th = {i: dn[i].update(k, th[i], {j: th[j] for j in range(nodes) if j != i}) for i in range(nodes)}
+    return dn, th
+
+
+@pytest.mark.parametrize("strategy", ["uniform-l2", "separate-l2", "separate-kl"])
+def test_each_bnn_strategy_trains_and_agrees(strategy):
+    s = LearnerSettings(model="bnn", model_shape=[2, 32, 32, 32, 1], regularization=strategy, rounds=30,
+                        primal_iterations=5, batch_size=512, lr_start=1e-2, lr_finish=1e-3, rho_init=0.1)
+    val_x, val_y = toy_data(9)
+    before = validation_bce(model_from_settings(s, BOUNDS, 0), val_x, val_y)
+    dn, th = run_inproc(s, rounds=30)
+    after = [validation_bce(n.model, val_x, val_y) for n in dn]
+    assert max(after) < before
+    assert len(dn[0].optimizers or dn[0]._optimizers(1e-3)) == (1 if strategy == "uniform-l2" else 2)
+
+
+def test_algorithm2_splits_mu_and_rho_into_two_optimizers():
+    s = LearnerSettings(model="bnn", model_shape=[2, 16, 8, 1], regularization="separate-kl", optimizer_per_round=False)
+    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+    mu_opt, rho_opt = node.optimizers
+    mu_ids = {id(p) for g in mu_opt.param_groups for p in g["params"]}
+    rho_names = {n for n, p in node.model.named_parameters() if id(p) in {id(q) for g in rho_opt.param_groups for q in g["params"]}}
+    assert rho_names == {"seq.1.weight_rho", "seq.1.bias_rho"}
+    assert not mu_ids & {id(p) for g in rho_opt.param_groups for p in g["params"]}
+    assert node.mu_rho_split() == (2 * 16 + 16 + 16 * 8 + 8 + 8 + 1, 16 * 8 + 8)
+
+
+def test_kl_strategy_pulls_spreads_not_means():
+    """With identical means and different rho, separate-kl's penalty is the KL of the spreads only."""
+    s = LearnerSettings(model="bnn", model_shape=[2, 4, 4, 1], regularization="separate-kl")
+    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+    th = torch.from_numpy(node.state())
+    other = th.clone()
+    other[node.rho_mask] += 1.0
+    reg = (th + other)[None] / 2
+    pen = node.consensus_penalty(th, reg).item()
+    sig0 = torch.nn.functional.softplus(th[node.rho_mask])
+    sig1 = torch.nn.functional.softplus(reg[0, node.rho_mask])
+    expected = node.rho * float((torch.log(sig1 / sig0) + sig0**2 / (2 * sig1**2) - 0.5).sum())
+    assert pen == pytest.approx(expected, rel=1e-5)
+
+
+def test_kept_optimizer_differs_from_fresh_one_per_round():
+    fresh = LearnerSettings(model_shape=[2, 16, 16, 1], rounds=5, batch_size=256)
+    kept = fresh.model_copy(update={"optimizer_per_round": False})
+    _, a = run_inproc(fresh, rounds=5)
+    _, b = run_inproc(kept, rounds=5)
+    assert not np.allclose(a[0], b[0])

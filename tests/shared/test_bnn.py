@@ -1,0 +1,62 @@
+"""The paper's Bayesian network: the KL of a layer, the mu/rho split, mean and std maps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from swarmmap.shared.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std
+from swarmmap.shared.models import build_model, load_model, save_model
+
+
+def test_layer_kl_matches_a_monte_carlo_estimate():
+    torch.manual_seed(0)
+    layer = BayesLinear(3, 2, prior_sigma=0.3, rho_init=-1.0)
+    with torch.no_grad():
+        layer.weight_mu.normal_(0, 0.5)
+        layer.weight_rho.uniform_(-2, 0)
+    closed = layer.kl().item()
+    # KL(q || p) = E_q[log q(w) - log p(w)], estimated from a million draws of every parameter.
+    n = 1_000_000
+    total = 0.0
+    for mu, rho in ((layer.weight_mu, layer.weight_rho), (layer.bias_mu, layer.bias_rho)):
+        sigma = F.softplus(rho).detach()
+        w = mu.detach() + sigma * torch.randn((n, *mu.shape), dtype=torch.float64)
+        log_q = torch.distributions.Normal(mu.detach().double(), sigma.double()).log_prob(w)
+        log_p = torch.distributions.Normal(0.0, 0.3).log_prob(w)
+        total += (log_q - log_p).mean(0).sum().item()
+    assert closed == pytest.approx(total, rel=0.01)
+
+
+def test_equation_6_for_known_gaussians():
+    kl = gaussian_kl(torch.tensor(1.0), torch.tensor(2.0), 0.0, 1.0)
+    assert kl.item() == pytest.approx(0.5 * (np.log(1 / 4) + (4 + 1) / 1 - 1))
+    assert gaussian_kl(torch.tensor(0.3), torch.tensor(0.7), 0.3, 0.7).item() == pytest.approx(0.0, abs=1e-7)
+
+
+def test_paper_architecture_and_rho_split():
+    net = build_model([2, 256, 256, 256, 256, 256, 1], 5.0, (0, 0, 10, 10), seed=0, kind="bnn")
+    assert isinstance(net, BayesNet) and len(net.bayes_layers()) == 4
+    names = [n for n, _ in net.named_parameters()]
+    rho = [n for n in names if is_rho(n)]
+    assert len(rho) == 8 and all(n.endswith(("weight_rho", "bias_rho")) for n in rho)
+    n_rho = sum(p.numel() for n, p in net.named_parameters() if is_rho(n))
+    assert n_rho == 4 * (256 * 256 + 256)
+    out = net(torch.zeros(5, 2))
+    assert out.shape == (5,) and ((out > 0) & (out < 1)).all()
+
+
+def test_mean_and_std_from_many_passes_in_batches(tmp_path):
+    net = build_model([2, 32, 32, 1], 5.0, (0, 0, 4, 4), seed=1, kind="bnn", rho_init=-2.0)
+    pts = np.random.default_rng(0).uniform(0, 4, size=(1000, 2))
+    mean, std = predict_mean_std(net, pts, samples=50, batch=128)
+    assert mean.shape == std.shape == (1000,) and (std > 0).all()
+    again, _ = predict_mean_std(net, pts, samples=50, batch=333)
+    np.testing.assert_allclose(mean[:128], again[:128], atol=0)  # same seed, same draws for the first batch
+    save_model(net, tmp_path / "m.pt")
+    back = load_model(tmp_path / "m.pt")
+    np.testing.assert_array_equal(predict_mean_std(back, pts, samples=5)[0], predict_mean_std(net, pts, samples=5)[0])
+    det = build_model([2, 32, 32, 1], 5.0, (0, 0, 4, 4), seed=1)
+    assert (predict_mean_std(det, pts)[1] == 0).all()
