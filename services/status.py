@@ -56,7 +56,7 @@ def report(cfg: RunConfig, window: float) -> str:
     alive, counts = collect(cfg, window)
     lines = [f"run {cfg.run_id}: {len(alive)} service(s) alive (rates over {window:.1f} s)"]
     for service, ident in alive:
-        if service == "status":
+        if service in ("status", "exchange", "up"):  # the launcher and learners' exchange readiness
             continue
         rates = ", ".join(f"{topic} {n / window:.1f} msg/s {b / window / 1024:.1f} KiB/s"
                           for topic, (n, b) in sorted(counts.get((service, ident), {}).items()))

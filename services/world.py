@@ -157,14 +157,15 @@ class Simulation:
         pybullet.disconnect(self.client)
 
 
-def world_map_message(cfg: RunConfig, grid: OccupancyGrid) -> WorldMap:
-    """The ground truth and validation set that the world serves on ``world/map``."""
+def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None = None) -> WorldMap:
+    """The ground truth, validation set and final robot positions that the world serves on ``world/map``."""
     w = cfg.world
     pts, labels = validation_set(grid, w.val_scans, w.val_beams, w.lidar_max_range_m,
                                  cfg.lidar.samples_per_beam, cfg.seed, cfg.lidar.occupied_depth_m)
     return WorldMap(run=cfg.run_id, sender=0, resolution=grid.resolution, origin=list(grid.origin),
                     grid=Tensor.of(grid.grid, "|u1"), val_points=Tensor.of(pts, "<f4"),
-                    val_labels=Tensor.of(labels, "<f4"), robots=cfg.robots)
+                    val_labels=Tensor.of(labels, "<f4"), robots=cfg.robots,
+                    positions=None if paths is None else Tensor.of(np.array([p[-1] for p in paths]), "<f4"))
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
@@ -180,7 +181,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     except PlanError as exc:
         log.error("floor plan refused: %s", exc)
         return 2
-    map_payload = encode(world_map_message(cfg, grid))
+    map_payload = encode(world_map_message(cfg, grid, paths))
     sim = Simulation(plan, paths, w)
     x0, y0, x1, y1 = plan.bounds
     log.info("plan %s (%s): %d rooms, %d doors, %.1f x %.1f m; paths %s m", plan.name, plan.kind, len(plan.rooms),

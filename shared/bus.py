@@ -125,13 +125,13 @@ class Bus:
 
     # -- liveliness
 
-    def announce(self, ident: int | str | None = None) -> None:
-        """Declare this service's liveliness token, or the one of ``ident`` when a process
-        serves several (do it after the subscribers are declared, so whoever sees the token can
-        already reach them)."""
-        ident = str(self.ident if ident is None else ident)
-        if ident not in self._tokens:
-            self._tokens[ident] = self.session.liveliness().declare_token(self.keys.alive(self.service, ident))
+    def announce(self, ident: int | str | None = None, service: str | None = None) -> None:
+        """Declare this service's liveliness token ``alive/<service>/<ident>`` (defaults: this
+        bus's own; a process serving several robots announces each). Do it after the
+        subscribers are declared, so whoever sees the token can already reach them."""
+        key = self.keys.alive(service or self.service, str(self.ident if ident is None else ident))
+        if key not in self._tokens:
+            self._tokens[key] = self.session.liveliness().declare_token(key)
 
     def alive(self, service: str = "*") -> set[tuple[str, str]]:
         """(service, id) of every live token of this run, optionally of one service."""

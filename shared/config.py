@@ -135,7 +135,13 @@ class LearnerSettings(Section):
     lr_schedule: Literal["constant", "linear", "log"] = Field("log", description="primal learning-rate schedule")
     rho_init: float = Field(0.3, ge=0, description="initial ADMM penalty rho")
     rho_growth: float = Field(1.0004, ge=1.0, description="rho is multiplied by this each round")
-    graph: Literal["complete", "ring"] = Field("complete", description="communication graph")
+    algorithm: Literal["dinno", "dsgd", "dsgt", "individual", "centralized"] = Field(
+        "dinno", description="DiNNO, or a baseline: DiNNO's DSGD and DSGT, individual (no communication), "
+                             "centralized (one model on every robot's data; needs transport inproc)")
+    graph: Literal["complete", "ring", "file", "disk"] = Field(
+        "complete", description="communication graph: complete, ring, an edge-list file, or DiNNO's disk graph")
+    graph_file: Path | None = Field(None, description="graph = file: YAML/JSON list of [i, j] edges")
+    comm_radius_m: float = Field(15.0, gt=0, description="graph = disk: robots within this distance talk (m)")
     model: Literal["fourier", "bnn"] = Field("fourier", description="DiNNO's deterministic FourierNet, or the paper's Bayesian network")
     model_shape: list[int] = Field(
         default_factory=lambda: [2, 256, 64, 64, 64, 1],
@@ -160,6 +166,10 @@ class LearnerSettings(Section):
 
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:
+        if self.algorithm == "centralized" and self.transport != "inproc":
+            raise ValueError("algorithm centralized trains one model in one process: set transport to inproc")
+        if self.graph == "file" and self.graph_file is None:
+            raise ValueError("graph file needs graph_file")
         if len(self.model_shape) < 3 or self.model_shape[0] != 2 or self.model_shape[-1] != 1:
             raise ValueError(f"model_shape must start with 2, end with 1 and have a hidden layer, got {self.model_shape}")
         if any(w < 1 for w in self.model_shape):

@@ -269,7 +269,8 @@ class WorldMap(Message):
 
     ``grid[r, c]`` (1 = occupied) covers x in [origin_x + c*res, +res) and y in
     [origin_y + r*res, +res): row 0 is the southern edge (y up). ``val_labels`` come from the
-    ground truth, never from a sensor. ``sender`` is 0 (there is one world)."""
+    ground truth, never from a sensor. ``positions`` (robots, 2) are where the robots stand
+    after their traversal (for distance-based communication graphs). ``sender`` is 0."""
 
     KIND: ClassVar[str] = "WorldMap"
     resolution: Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -278,10 +279,15 @@ class WorldMap(Message):
     val_points: Tensor
     val_labels: Tensor
     robots: Annotated[int, Field(ge=1, le=10000)]
+    positions: Tensor | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> WorldMap:
         _require(self.grid, "grid", "|u1", 2)
+        if self.positions is not None:
+            _require(self.positions, "positions", "<f4", 2, (2,))
+            if self.positions.shape[0] != self.robots:
+                raise ValueError("positions must hold one row per robot")
         _require(self.val_points, "val_points", "<f4", 2, (2,))
         _require(self.val_labels, "val_labels", "<f4", 1)
         if self.val_points.shape[0] != self.val_labels.shape[0]:

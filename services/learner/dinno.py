@@ -53,8 +53,8 @@ def make_optimizer(kind: str, params, lr: float) -> torch.optim.Optimizer:
     raise ValueError(f"unknown optimizer {kind!r}; allowed: adam, adamw, sgd")
 
 
-class DinnoNode:
-    """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE."""
+class LocalNode:
+    """A node's model, its local data and the loss on a random batch of it."""
 
     def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
                  settings: LearnerSettings, seed: int):
@@ -63,14 +63,45 @@ class DinnoNode:
         self.points = points.to(self.device)
         self.labels = labels.to(self.device)
         self.s = settings
-        self.rho = settings.rho_init
-        self.duals = torch.zeros_like(get_flat(model))
         self.lrs = lr_schedule(settings.lr_schedule, settings.lr_start, settings.lr_finish, settings.rounds)
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         self.bayesian = isinstance(model, BayesNet)
         if self.bayesian:
             noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
             model.use_generator(noise)
+
+    def state(self) -> np.ndarray:
+        """What this node sends as its State: its flat parameters."""
+        return get_flat(self.model).cpu().numpy().astype(np.float32)
+
+    def params(self) -> np.ndarray:
+        """The node's model parameters (a prefix of its State for DSGT)."""
+        return get_flat(self.model).cpu().numpy().astype(np.float32)
+
+    def batch_loss(self) -> torch.Tensor:
+        """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
+        idx = torch.randint(0, len(self.points), (min(self.s.batch_size, len(self.points)),), generator=self.gen)
+        idx = idx.to(self.device)
+        loss = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
+        if self.bayesian and self.s.kl_weight > 0:
+            loss = loss + self.s.kl_weight * self.model.kl()
+        return loss
+
+    def gradient(self) -> torch.Tensor:
+        """The flat gradient of the batch loss at the current parameters."""
+        self.model.zero_grad()
+        self.batch_loss().backward()
+        return torch.cat([p.grad.reshape(-1) for p in self.model.parameters()]).detach().clone()
+
+
+class DinnoNode(LocalNode):
+    """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE."""
+
+    def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
+                 settings: LearnerSettings, seed: int):
+        super().__init__(model, points, labels, settings, seed)
+        self.rho = settings.rho_init
+        self.duals = torch.zeros_like(get_flat(model))
         names = [n for n, _ in model.named_parameters()]
         params = list(model.parameters())
         rho_flags = torch.cat([torch.full((p.numel(),), is_rho(n), dtype=torch.bool) for n, p in zip(names, params)])
@@ -89,18 +120,6 @@ class DinnoNode:
         """How many parameters are mu and how many rho (Algorithm 2's two groups)."""
         n_rho = int(self.rho_mask.sum())
         return self.rho_mask.numel() - n_rho, n_rho
-
-    def state(self) -> np.ndarray:
-        return get_flat(self.model).cpu().numpy().astype(np.float32)
-
-    def batch_loss(self) -> torch.Tensor:
-        """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
-        idx = torch.randint(0, len(self.points), (min(self.s.batch_size, len(self.points)),), generator=self.gen)
-        idx = idx.to(self.device)
-        loss = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
-        if self.bayesian and self.s.kl_weight > 0:
-            loss = loss + self.s.kl_weight * self.model.kl()
-        return loss
 
     def consensus_penalty(self, th: torch.Tensor, th_reg: torch.Tensor) -> torch.Tensor:
         """The round's pull towards the neighbours' midpoints ``th_reg`` (one row per neighbour)."""
@@ -169,3 +188,58 @@ def consensus_error(theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> float:
         return 0.0
     a = theta_i / max(np.linalg.norm(theta_i), 1e-12)
     return float(np.mean([np.linalg.norm(a - p / max(np.linalg.norm(p), 1e-12)) for p in peers.values()]))
+
+
+class DsgdNode(LocalNode):
+    """DiNNO's DSGD baseline: mix with the neighbours by Metropolis weights, then one gradient
+    step of size ``lrs[k]`` at the mixed parameters. (DiNNO's single-process loop mixes in
+    place, so later nodes see earlier nodes' new values; here every node mixes round-k values,
+    as independent processes must.)"""
+
+    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int):
+        super().__init__(model, points, labels, settings, seed)
+        self.weights, self.node = weights, node
+
+    def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        mixed = self.weights[self.node] * torch.as_tensor(theta_i, device=self.device)
+        for j, th in peers.items():
+            mixed = mixed + self.weights[j] * torch.as_tensor(th, device=self.device)
+        set_flat(self.model, mixed)
+        g = self.gradient()
+        set_flat(self.model, mixed - float(self.lrs[min(k, len(self.lrs) - 1)]) * g)
+        return self.state()
+
+
+class DsgtNode(LocalNode):
+    """DiNNO's DSGT baseline (gradient tracking): the State carries [theta, y]; per round
+    theta <- W_ii theta - alpha y_i + sum_j W_ij theta_j, then y <- W_ii y_i + sum_j W_ij y_j
+    + g(theta) - g_old, with y and g_old starting at the gradient at theta_0."""
+
+    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int):
+        super().__init__(model, points, labels, settings, seed)
+        self.weights, self.node = weights, node
+        self.n = sum(p.numel() for p in model.parameters())
+        self.g_old = self.gradient()
+        self.y = self.g_old.clone()
+
+    def state(self) -> np.ndarray:
+        return torch.cat([get_flat(self.model), self.y]).cpu().numpy().astype(np.float32)
+
+    def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        n, w = self.n, self.weights
+        own = torch.as_tensor(state_i, device=self.device)
+        alpha = float(self.lrs[min(k, len(self.lrs) - 1)])
+        theta = w[self.node] * own[:n] - alpha * own[n:]
+        y = w[self.node] * own[n:]
+        for j, st in peers.items():
+            other = torch.as_tensor(st, device=self.device)
+            theta = theta + w[j] * other[:n]
+            y = y + w[j] * other[n:]
+        set_flat(self.model, theta)
+        g = self.gradient()
+        self.y = y + g - self.g_old
+        self.g_old = g
+        return self.state()
+
+    def params(self) -> np.ndarray:
+        return get_flat(self.model).cpu().numpy().astype(np.float32)

@@ -2,11 +2,13 @@
 
 Run-book: ``swarmmap learner --robot I --config RUN_DIR/config.yaml``. Order of work:
 
-1. subscribe to its training points (``robots/<I>/samples``) and its neighbours' State and
-   RoundComplete keys, then announce itself (liveliness ``alive/learner/<I>``);
+1. subscribe to its training points (``robots/<I>/samples``), then announce itself
+   (liveliness ``alive/learner/<I>``);
 2. fetch the ground-truth validation set from the world (query ``world/map``);
 3. collect points until its robot's traversal ends (offline training, as in the paper);
-4. wait for its neighbours to be alive, then run Algorithm 1 for ``rounds`` rounds with
+4. work out its neighbours (``learner.graph``), subscribe to their State and RoundComplete
+   keys, announce ``alive/exchange/<I>``, wait for its neighbours' exchange tokens, then run
+   Algorithm 1 for ``rounds`` rounds with
    DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds and at the end;
 5. write ``RUN_DIR/models/robot-<I>.pt``, ``RUN_DIR/maps/robot-<I>-mean.png`` and its training
    points ``RUN_DIR/data/robot-<I>.npz``.
@@ -23,8 +25,9 @@ import time
 import numpy as np
 import torch
 
-from swarmmap.services.learner.dinno import DinnoNode, consensus_error, validation_bce
+from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce
 from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
+from swarmmap.services.learner.graphs import GraphError, metropolis_weights, neighbour_sets
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
@@ -35,15 +38,6 @@ from swarmmap.shared.models import model_from_settings, param_count, pick_device
 from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap
 
 log = logging.getLogger("learner")
-
-
-def neighbours_of(robot: int, robots: int, graph: str) -> set[int]:
-    """The neighbours of ``robot`` in the communication graph."""
-    if graph == "complete":
-        return set(range(robots)) - {robot}
-    if graph == "ring":
-        return {(robot - 1) % robots, (robot + 1) % robots} - {robot}
-    raise ValueError(f"unknown graph {graph!r}; allowed: complete, ring")
 
 
 def exchange_bytes(bus: Bus, robot: int) -> tuple[int, int]:
@@ -96,7 +90,8 @@ class RobotLearner:
     def __init__(self, cfg: RunConfig, robot: int, bus: Bus, device: torch.device):
         self.cfg, self.robot, self.bus, self.device = cfg, robot, bus, device
         self.s = cfg.learner
-        self.neighbours = neighbours_of(robot, cfg.robots, self.s.graph)
+        self.candidates = set(range(cfg.robots)) - {robot}  # whoever the graph may make a neighbour
+        self.neighbours: set[int] = set()
         self.collector = Collector()
         bus.subscribe(bus.keys.samples(robot), Samples, self.collector.add)
         self.metrics_pub = bus.publisher(bus.keys.metrics(robot))
@@ -116,18 +111,38 @@ class RobotLearner:
         if len(self.points) == 0:
             raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
         log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(self.points), 100 * self.labels.mean())
-        model = model_from_settings(s, world.bounds, self.cfg.seed).to(self.device)
-        self.node = DinnoNode(model, torch.from_numpy(self.points.copy()), torch.from_numpy(self.labels.copy()), s,
-                              seed=self.cfg.seed * 1000 + robot + 1)
         self.world = world
         self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
         self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
+        positions = world.positions.numpy() if world.positions is not None else None
+        try:
+            graph = neighbour_sets("none" if s.algorithm in ("individual", "centralized") else s.graph, self.cfg.robots,
+                                   graph_file=s.graph_file, radius=s.comm_radius_m, positions=positions)
+        except GraphError as exc:
+            raise LearnerError(str(exc), 2) from None
+        self.neighbours = graph[robot]
+        self.build_node(graph)
+
+    def build_node(self, graph: dict[int, set[int]]) -> None:
+        """The node of ``learner.algorithm`` on this robot's points."""
+        s, robot = self.s, self.robot
+        model = model_from_settings(s, self.world.bounds, self.cfg.seed).to(self.device)
+        data = (torch.from_numpy(self.points.copy()), torch.from_numpy(self.labels.copy()))
+        seed = self.cfg.seed * 1000 + robot + 1
+        if s.algorithm == "dsgd":
+            self.node = DsgdNode(model, *data, s, seed, metropolis_weights(graph, robot), robot)
+        elif s.algorithm == "dsgt":
+            self.node = DsgtNode(model, *data, s, seed, metropolis_weights(graph, robot), robot)
+        else:
+            self.node = DinnoNode(model, *data, s, seed)
 
     def publish_metrics(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
         sent, received = exchange_bytes(self.bus, self.robot)
+        n = len(self.node.params())  # DSGT's State also carries its gradient tracker
         msg = Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=time.monotonic() - self.t_start,
                       val_bce=validation_bce(self.node.model, self.val_x, self.val_y),
-                      consensus_error=consensus_error(theta, peers), bytes_sent=sent, bytes_received=received,
+                      consensus_error=consensus_error(theta[:n], {j: p[:n] for j, p in peers.items()}),
+                      bytes_sent=sent, bytes_received=received,
                       compute_s=self.compute_s, wait_s=self.stats.wait_s, send_s=self.stats.send_s,
                       n_points=len(self.points), pid=os.getpid(), final=final)
         self.metrics_pub.put(msg)
@@ -151,8 +166,13 @@ class RobotLearner:
                                    stats=self.stats, stop=stop, peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
-        set_flat(self.node.model, torch.from_numpy(final))
-        m = self.publish_metrics(s.rounds, final, self.stats.final_peers, final=True)
+        set_flat(self.node.model, torch.from_numpy(final[: len(self.node.params())]))
+        self.finish(final, self.stats.final_peers)
+
+    def finish(self, final: np.ndarray, peers: dict[int, np.ndarray]) -> None:
+        """The final metrics and outputs."""
+        s, robot = self.s, self.robot
+        m = self.publish_metrics(s.rounds, final, peers, final=True)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
         if self.cfg.run_dir is not None:
@@ -178,13 +198,9 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     n_params = param_count(model_from_settings(s, (0, 0, 1, 1), cfg.seed))
+    state_size = 2 * n_params if s.algorithm == "dsgt" else n_params
     with Bus.open(cfg.zenoh, keys, "learner", robots[0]) as bus:
         learners = [RobotLearner(cfg, r, bus, device) for r in robots]
-        if inproc:
-            hub = MemoryHub({r.robot: r.neighbours for r in learners})
-            transports = {r.robot: hub.transport(r.robot) for r in learners}
-        else:
-            transports = {robots[0]: ZenohTransport(bus, robots[0], learners[0].neighbours, n_params)}
         for r in robots:
             bus.announce(r)
         world = bus.query(keys.world_map(), WorldMap, timeout=s.collect_timeout_s, stop=stop)
@@ -198,11 +214,21 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         try:
             for learner in learners:
                 learner.prepare(world, stop)
-            wanted = set().union(*(r.neighbours for r in learners)) - set(robots)
-            missing = bus.wait_alive("learner", {str(j) for j in wanted}, s.peer_timeout_s, stop)
-            if missing and not stop.is_set():
-                raise LearnerError(f"neighbour learner(s) {sorted(missing)} never came alive", 4)
-            run_all(learners, transports, stop)
+            if s.algorithm == "centralized":
+                train_centralized(learners, stop)
+            elif inproc:
+                hub = MemoryHub({r.robot: r.neighbours for r in learners})
+                run_all(learners, {r.robot: hub.transport(r.robot) for r in learners}, stop)
+            else:
+                # Subscribe to exactly this round's neighbours (known once the world answered), then
+                # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
+                me = learners[0]
+                transport = ZenohTransport(bus, me.robot, me.neighbours, state_size)
+                bus.announce(me.robot, service="exchange")
+                missing = bus.wait_alive("exchange", {str(j) for j in me.neighbours}, s.peer_timeout_s, stop)
+                if missing and not stop.is_set():
+                    raise LearnerError(f"neighbour learner(s) {sorted(missing)} never became ready to exchange", 4)
+                run_all(learners, {me.robot: transport}, stop)
         except LearnerError as exc:
             log.error("%s", exc)
             return exc.status
@@ -212,6 +238,21 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         # Stay until every neighbour has its final State from us (they linger likewise).
         stop.wait(0.5)
     return 0
+
+
+def train_centralized(learners: list[RobotLearner], stop: threading.Event) -> None:
+    """The centralized baseline: one model trained on every robot's points, reported as every
+    robot's model."""
+    head = learners[0]
+    head.points = np.concatenate([r.points for r in learners])
+    head.labels = np.concatenate([r.labels for r in learners])
+    head.build_node({head.robot: set()})
+    log.info("centralized: one model on %d points of %d robots", len(head.points), len(learners))
+    head.train(MemoryHub({head.robot: set()}).transport(head.robot), stop)
+    final = head.node.state()
+    for r in learners[1:]:
+        r.node, r.points, r.t_start, r.compute_s = head.node, head.points, head.t_start, head.compute_s
+        r.finish(final, {})
 
 
 def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:

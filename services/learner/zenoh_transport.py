@@ -2,8 +2,8 @@
 
 A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete`` and
 subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
-than this node's model is refused (counted, logged once). Liveliness tokens of the neighbours
-tell the exchange when one has left.
+than this node's model is refused (counted, logged once). The neighbours' ``exchange``
+liveliness tokens tell the exchange when one has left.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class ZenohTransport:
                 with self._lock:
                     (self._lost.discard if alive else self._lost.add)(int(ident))
 
-        bus.watch_alive("learner", on_alive)
+        bus.watch_alive("exchange", on_alive)
 
     def _on_state(self, msg: State) -> None:
         self.inbox.put(Envelope("state", msg.sender, msg.round, msg.params.numpy().copy()))

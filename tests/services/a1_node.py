@@ -27,8 +27,8 @@ def main():
     peers = {0, 1} - {node}
     with Bus.open(ZenohSettings.model_validate(json.loads(settings)), Keys("swarmmap", run), "learner", node) as bus:
         transport = ZenohTransport(bus, node, peers, 4)
-        bus.announce()
-        assert not bus.wait_alive("learner", {str(j) for j in peers}, 30.0)
+        bus.announce(service="exchange")
+        assert not bus.wait_alive("exchange", {str(j) for j in peers}, 30.0)
         theta = np.full(4, float(node), np.float32)
         final = run_algorithm1(node, peers, rounds, theta, update(node), transport, peer_timeout=30,
                                stop=threading.Event())

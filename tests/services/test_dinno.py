@@ -76,3 +76,37 @@ def test_kept_optimizer_differs_from_fresh_one_per_round():
     _, a = run_inproc(fresh, rounds=5)
     _, b = run_inproc(kept, rounds=5)
     assert not np.allclose(a[0], b[0])
+
+
+def run_baseline(cls, settings, nodes=3, rounds=20):
+    from swarmmap.services.learner.graphs import metropolis_weights, neighbour_sets
+
+    graph = neighbour_sets("ring", nodes)
+    dn = [cls(model_from_settings(settings, BOUNDS, 0), *toy_data(i), settings, i + 1, metropolis_weights(graph, i), i)
+          for i in range(nodes)]
+    st = {i: dn[i].state() for i in range(nodes)}
+    for k in range(rounds):
+        st = {i: dn[i].update(k, st[i], {j: st[j] for j in graph[i]}) for i in range(nodes)}
+    return dn, st
+
+
+@pytest.mark.parametrize("name", ["dsgd", "dsgt"])
+def test_dsgd_and_dsgt_learn(name):
+    from swarmmap.services.learner.dinno import DsgdNode, DsgtNode
+
+    s = LearnerSettings(model_shape=[2, 32, 32, 1], batch_size=512, lr_start=0.3, lr_finish=0.3, rounds=40)
+    val_x, val_y = toy_data(9)
+    before = validation_bce(model_from_settings(s, BOUNDS, 0), val_x, val_y)
+    dn, _ = run_baseline(DsgdNode if name == "dsgd" else DsgtNode, s, rounds=40)
+    assert max(validation_bce(n.model, val_x, val_y) for n in dn) < before
+
+
+def test_dsgt_tracks_the_average_gradient():
+    """Gradient tracking's invariant with doubly stochastic weights: mean_i y_i = mean_i g_i."""
+    from swarmmap.services.learner.dinno import DsgtNode
+
+    s = LearnerSettings(model_shape=[2, 8, 8, 1], batch_size=64, lr_start=0.1, lr_finish=0.1, rounds=5)
+    dn, _ = run_baseline(DsgtNode, s, rounds=5)
+    mean_y = torch.stack([n.y for n in dn]).mean(0)
+    mean_g = torch.stack([n.g_old for n in dn]).mean(0)
+    torch.testing.assert_close(mean_y, mean_g, rtol=1e-4, atol=1e-5)

@@ -1,0 +1,46 @@
+"""Every baseline and graph runs through the whole system."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.e2e.test_up import clean_env
+
+pytestmark = pytest.mark.e2e
+
+
+def up(run_dir, *extra):
+    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "30",
+                           "--run-dir", str(run_dir), *extra], capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads((run_dir / "summary.json").read_text())["learners"]
+
+
+def test_centralized_baseline_is_one_model_for_everyone(tmp_path):
+    learners = up(tmp_path / "c", "--transport", "inproc", "--set", "learner.algorithm=centralized")
+    finals = {v["final_val_bce"] for v in learners.values()}
+    assert len(finals) == 1 and finals.pop() < learners["0"]["first_val_bce"]
+
+
+def test_dsgt_over_zenoh_on_a_graph_file(tmp_path):
+    graph = tmp_path / "graph.yaml"
+    graph.write_text("edges: [[0, 1], [1, 2]]\n")
+    learners = up(tmp_path / "g", "--set", "learner.algorithm=dsgt", "--set", "learner.graph=file",
+                  "--set", f"learner.graph_file={graph}", "--set", "learner.lr_start=0.3", "--set", "learner.lr_finish=0.3")
+    assert all(v["finished"] and v["final_val_bce"] < v["first_val_bce"] for v in learners.values())
+    # Robot 0's only neighbour is 1: it receives one State per round, robot 1 two.
+    assert learners["1"]["bytes_received"] > 1.8 * learners["0"]["bytes_received"]
+
+
+def test_individual_and_disk_graph(tmp_path):
+    alone = up(tmp_path / "i", "--set", "learner.algorithm=individual")
+    rows = list(csv.DictReader((tmp_path / "i" / "metrics.csv").open()))
+    assert all(float(r["consensus_error"]) == 0.0 and int(r["bytes_received"]) == 0 for r in rows)
+    assert all(v["final_val_bce"] < v["first_val_bce"] for v in alone.values())
+    disk = up(tmp_path / "d", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=0.01", "--transport", "inproc")
+    assert all(v["finished"] for v in disk.values())  # nobody within 1 cm: each trains alone
