@@ -70,9 +70,11 @@ class MetricsRecorder:
     def __init__(self, path: Path):
         self.path = path
         self._lock = threading.Lock()
-        self._file = path.open("w", newline="")
+        resuming = path.exists() and path.stat().st_size > 0  # a resumed run keeps the rows it had
+        self._file = path.open("a" if resuming else "w", newline="")
         self._csv = csv.writer(self._file)
-        self._csv.writerow(METRICS_COLUMNS)
+        if not resuming:
+            self._csv.writerow(METRICS_COLUMNS)
         self._file.flush()
         self.first: dict[int, Metrics] = {}
         self.final: dict[int, Metrics] = {}

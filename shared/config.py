@@ -157,6 +157,8 @@ class LearnerSettings(Section):
     optimizer_per_round: bool = Field(True, description="re-create the optimizer every round (DiNNO's default) or keep it")
     siren_scale: float = Field(5.0, gt=0, description="frequency scale of the sine layer (inputs in metres from the map centre)")
     eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
+    checkpoint_every: int = Field(50, ge=0, description="write RUN_DIR/checkpoints/robot-<i>.pt every this many rounds (0: never); "
+                                                        "a learner started on a run directory with a checkpoint resumes from it")
     map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
     collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
     peer_timeout_s: float = Field(120.0, gt=0, description="fail when no peer message arrives for this long")

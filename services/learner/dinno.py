@@ -66,9 +66,20 @@ class LocalNode:
         self.lrs = lr_schedule(settings.lr_schedule, settings.lr_start, settings.lr_finish, settings.rounds)
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         self.bayesian = isinstance(model, BayesNet)
+        self.noise: torch.Generator | None = None
         if self.bayesian:
-            noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
-            model.use_generator(noise)
+            self.noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
+            model.use_generator(self.noise)
+
+    def checkpoint(self) -> dict:
+        """Everything besides the parameters that the next rounds depend on (RNG states too, so
+        a resumed run repeats the uninterrupted one)."""
+        return {"gen": self.gen.get_state(), "noise": None if self.noise is None else self.noise.get_state()}
+
+    def restore(self, doc: dict) -> None:
+        self.gen.set_state(doc["gen"])
+        if self.noise is not None and doc.get("noise") is not None:
+            self.noise.set_state(doc["noise"])
 
     def state(self) -> np.ndarray:
         """What this node sends as its State: its flat parameters."""
@@ -112,6 +123,20 @@ class DinnoNode(LocalNode):
         else:
             self.groups = [[p for n, p in zip(names, params) if not is_rho(n)], [p for n, p in zip(names, params) if is_rho(n)]]
         self.optimizers = None if settings.optimizer_per_round else self._optimizers(float(self.lrs[0]))
+
+    def checkpoint(self) -> dict:
+        doc = super().checkpoint()
+        doc.update(duals=self.duals.cpu(), rho=self.rho,
+                   optimizers=None if self.optimizers is None else [o.state_dict() for o in self.optimizers])
+        return doc
+
+    def restore(self, doc: dict) -> None:
+        super().restore(doc)
+        self.duals = doc["duals"].to(self.device)
+        self.rho = doc["rho"]
+        if self.optimizers is not None and doc.get("optimizers") is not None:
+            for opt, state in zip(self.optimizers, doc["optimizers"]):
+                opt.load_state_dict(state)
 
     def _optimizers(self, lr: float) -> list[torch.optim.Optimizer]:
         return [make_optimizer(self.s.optimizer, group, lr) for group in self.groups if group]
@@ -221,6 +246,13 @@ class DsgtNode(LocalNode):
         self.n = sum(p.numel() for p in model.parameters())
         self.g_old = self.gradient()
         self.y = self.g_old.clone()
+
+    def checkpoint(self) -> dict:
+        return {**super().checkpoint(), "y": self.y.cpu(), "g_old": self.g_old.cpu()}
+
+    def restore(self, doc: dict) -> None:
+        super().restore(doc)
+        self.y, self.g_old = doc["y"].to(self.device), doc["g_old"].to(self.device)
 
     def state(self) -> np.ndarray:
         return torch.cat([get_flat(self.model), self.y]).cpu().numpy().astype(np.float32)

@@ -98,10 +98,38 @@ class RobotLearner:
         self.stats = ExchangeStats()
         self.compute_s = 0.0
         self.t_start = 0.0
+        self.start_round = 0
+        self.start_state: np.ndarray | None = None
+        self.checkpoint_path = cfg.run_dir / "checkpoints" / f"robot-{robot}.pt" if cfg.run_dir is not None else None
+
+    def resumable(self) -> dict | None:
+        """This robot's checkpoint in the run directory, if there is one."""
+        if self.checkpoint_path is None or not self.checkpoint_path.exists() or self.s.checkpoint_every == 0:
+            return None
+        try:
+            return torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # a checkpoint we cannot read is not silently ignored
+            raise LearnerError(f"robot {self.robot}: cannot read checkpoint {self.checkpoint_path}: {exc}", 2) from None
+
+    def save_checkpoint(self, k: int, theta: np.ndarray) -> None:
+        """Atomically write what round ``k`` starts from."""
+        buf = io.BytesIO()
+        torch.save({"round": k, "state": torch.from_numpy(theta.copy()), "node": self.node.checkpoint(),
+                    "points": torch.from_numpy(self.points), "labels": torch.from_numpy(self.labels),
+                    "run_id": self.cfg.run_id}, buf)
+        atomic_write_bytes(self.checkpoint_path, buf.getvalue())
 
     def prepare(self, world: WorldMap, stop: threading.Event) -> None:
-        """Wait for the end of the traversal, then build the model and the node."""
+        """Wait for the end of the traversal (or resume from a checkpoint), then build the node."""
         s, robot = self.s, self.robot
+        doc = self.resumable()
+        if doc is not None:
+            self.points, self.labels = doc["points"].numpy(), doc["labels"].numpy()
+            self.setup(world)
+            self.node.restore(doc["node"])
+            self.start_round, self.start_state = int(doc["round"]), doc["state"].numpy()
+            log.info("robot %d: resuming from %s at round %d", robot, self.checkpoint_path, self.start_round)
+            return
         if not (self.collector.done.wait(s.collect_timeout_s) or stop.is_set()):
             raise LearnerError(f"robot {robot}: the traversal did not end within {s.collect_timeout_s:.0f} s "
                                f"(no Samples with last=true on {self.bus.keys.samples(robot)})", 3)
@@ -111,6 +139,11 @@ class RobotLearner:
         if len(self.points) == 0:
             raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
         log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(self.points), 100 * self.labels.mean())
+        self.setup(world)
+
+    def setup(self, world: WorldMap) -> None:
+        """The validation set, the graph and the node, once the points are known."""
+        s, robot = self.s, self.robot
         self.world = world
         self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
         self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
@@ -149,6 +182,9 @@ class RobotLearner:
         return msg
 
     def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        every = self.s.checkpoint_every
+        if every and k % every == 0 and k != self.start_round and self.checkpoint_path is not None:
+            self.save_checkpoint(k, theta)
         if k % self.s.eval_every == 0:
             m = self.publish_metrics(k, theta, peers)
             log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
@@ -162,8 +198,10 @@ class RobotLearner:
         s, robot = self.s, self.robot
         self.t_start = time.monotonic()
         try:
-            final = run_algorithm1(robot, self.neighbours, s.rounds, self.node.state(), self.node_update, transport,
-                                   stats=self.stats, stop=stop, peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
+            start = self.node.state() if self.start_state is None else self.start_state
+            final = run_algorithm1(robot, self.neighbours, s.rounds, start, self.node_update, transport,
+                                   start_round=self.start_round, stats=self.stats, stop=stop,
+                                   peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(final[: len(self.node.params())]))

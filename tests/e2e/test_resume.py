@@ -1,0 +1,56 @@
+"""Checkpoints: a team restarted on a run directory resumes from its checkpoints and ends
+exactly where the uninterrupted run ended; nothing already written is lost."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from swarmmap.shared.models import load_model
+from tests.e2e.test_up import clean_env
+
+pytestmark = pytest.mark.e2e
+
+
+def up(run_dir, *extra):
+    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "20",
+                           "--set", "learner.checkpoint_every=10", "--run-dir", str(run_dir), *extra],
+                          capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+@pytest.mark.parametrize("model", ["fourier", "bnn"])
+def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path, model):
+    a, b = tmp_path / "a", tmp_path / "b"
+    up(a, "--set", f"learner.model={model}")
+    assert sorted(p.name for p in (a / "checkpoints").iterdir()) == ["robot-0.pt", "robot-1.pt", "robot-2.pt"]
+    assert torch.load(a / "checkpoints" / "robot-0.pt", weights_only=True)["round"] == 10
+    # B: the run directory as a crash after round 10 would leave it.
+    shutil.copytree(a, b)
+    shutil.rmtree(b / "models")
+    before = list(csv.DictReader((b / "metrics.csv").open()))
+    up(b, "--set", f"learner.model={model}")
+    for robot in range(3):
+        log = (b / "logs" / f"learner-{robot}.log").read_text()
+        assert "resuming from" in log and "at round 10" in log
+        sa = load_model(a / "models" / f"robot-{robot}.pt").state_dict()
+        sb = load_model(b / "models" / f"robot-{robot}.pt").state_dict()
+        for name in sa:
+            torch.testing.assert_close(sa[name], sb[name], rtol=0, atol=1e-6)
+    after = list(csv.DictReader((b / "metrics.csv").open()))
+    assert after[: len(before)] == before and len(after) > len(before)
+
+
+def test_unreadable_checkpoint_is_named(tmp_path):
+    run = tmp_path / "c"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "robot-1.pt").write_bytes(b"not a checkpoint")
+    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "5",
+                           "--run-dir", str(run)], capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 1
+    assert "cannot read checkpoint" in (run / "logs" / "learner-1.log").read_text()
