@@ -81,6 +81,11 @@ class LocalNode:
         if self.noise is not None and doc.get("noise") is not None:
             self.noise.set_state(doc["noise"])
 
+    def set_data(self, points: np.ndarray, labels: np.ndarray) -> None:
+        """Replace the local data (online training's sliding window)."""
+        self.points = torch.from_numpy(np.ascontiguousarray(points)).to(self.device)
+        self.labels = torch.from_numpy(np.ascontiguousarray(labels)).to(self.device)
+
     def state(self) -> np.ndarray:
         """What this node sends as its State: its flat parameters."""
         return get_flat(self.model).cpu().numpy().astype(np.float32)

@@ -60,20 +60,24 @@ class Collector:
         self.points: list[np.ndarray] = []
         self.labels: list[np.ndarray] = []
         self.done = threading.Event()
+        self.first = threading.Event()
         self._lock = threading.Lock()
 
     def add(self, msg: Samples) -> None:
         with self._lock:
             self.points.append(msg.points.numpy())
             self.labels.append(msg.labels.numpy())
+        self.first.set()
         if msg.last:
             self.done.set()
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+    def arrays(self, last_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every point so far, or those of the ``last_scans`` most recent scans."""
         with self._lock:
             if not self.points:
                 return np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
-            return np.concatenate(self.points), np.concatenate(self.labels)
+            k = len(self.points) if last_scans is None else min(last_scans, len(self.points))
+            return np.concatenate(self.points[-k:]), np.concatenate(self.labels[-k:])
 
 
 class LearnerError(RuntimeError):
@@ -130,12 +134,13 @@ class RobotLearner:
             self.start_round, self.start_state = int(doc["round"]), doc["state"].numpy()
             log.info("robot %d: resuming from %s at round %d", robot, self.checkpoint_path, self.start_round)
             return
-        if not (self.collector.done.wait(s.collect_timeout_s) or stop.is_set()):
-            raise LearnerError(f"robot {robot}: the traversal did not end within {s.collect_timeout_s:.0f} s "
-                               f"(no Samples with last=true on {self.bus.keys.samples(robot)})", 3)
+        ready = self.collector.first if s.data == "online" else self.collector.done
+        if not (ready.wait(s.collect_timeout_s) or stop.is_set()):
+            what = "no Samples" if s.data == "online" else "no Samples with last=true"
+            raise LearnerError(f"robot {robot}: {what} on {self.bus.keys.samples(robot)} within {s.collect_timeout_s:.0f} s", 3)
         if stop.is_set():
             raise InterruptedError
-        self.points, self.labels = self.collector.arrays()
+        self.points, self.labels = self.collector.arrays(s.window_scans if s.data == "online" else None)
         if len(self.points) == 0:
             raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
         log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(self.points), 100 * self.labels.mean())
@@ -185,6 +190,9 @@ class RobotLearner:
         every = self.s.checkpoint_every
         if every and k % every == 0 and k != self.start_round and self.checkpoint_path is not None:
             self.save_checkpoint(k, theta)
+        if self.s.data == "online":  # DiNNO's sliding window over the scans received so far
+            self.points, self.labels = self.collector.arrays(self.s.window_scans)
+            self.node.set_data(self.points, self.labels)
         if k % self.s.eval_every == 0:
             m = self.publish_metrics(k, theta, peers)
             log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)

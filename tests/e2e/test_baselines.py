@@ -44,3 +44,14 @@ def test_individual_and_disk_graph(tmp_path):
     assert all(v["final_val_bce"] < v["first_val_bce"] for v in alone.values())
     disk = up(tmp_path / "d", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=0.01", "--transport", "inproc")
     assert all(v["finished"] for v in disk.values())  # nobody within 1 cm: each trains alone
+
+
+def test_online_training_starts_while_the_robots_drive(tmp_path):
+    learners = up(tmp_path / "o", "--set", "learner.data=online", "--set", "learner.window_scans=30",
+                  "--set", "world.time_scale=4")
+    assert all(v["finished"] and v["final_val_bce"] < v["first_val_bce"] for v in learners.values())
+    world = (tmp_path / "o" / "logs" / "world-0.log").read_text().splitlines()
+    learner = (tmp_path / "o" / "logs" / "learner-0.log").read_text().splitlines()
+    traversal_end = next(line for line in world if "traversal done" in line)[:23]
+    first_round = next(line for line in learner if "round 0:" in line)[:23]
+    assert first_round < traversal_end, "online training should begin before the traversal ends"
