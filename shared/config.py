@@ -157,7 +157,8 @@ class LearnerSettings(Section):
     optimizer_per_round: bool = Field(True, description="re-create the optimizer every round (DiNNO's default) or keep it")
     siren_scale: float = Field(5.0, gt=0, description="frequency scale of the sine layer (inputs in metres from the map centre)")
     data: Literal["offline", "online"] = Field(
-        "offline", description="train once the traversal is done (the paper), or from the start on a sliding window of recent scans (DiNNO)")
+        "offline", description="train once the traversal is done (the paper), or from the start on a sliding window "
+                               "of recent scans (DiNNO)")
     window_scans: int = Field(800, ge=1, description="online: scans in the sliding window (DiNNO: 800)")
     eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
     checkpoint_every: int = Field(50, ge=0, description="write RUN_DIR/checkpoints/robot-<i>.pt every this many rounds (0: never); "
