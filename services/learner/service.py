@@ -266,7 +266,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 hub = MemoryHub({r.robot: r.neighbours for r in learners})
                 run_all(learners, {r.robot: hub.transport(r.robot) for r in learners}, stop)
             else:
-                # Subscribe to exactly this round's neighbours (known once the world answered), then
+                # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
                 me = learners[0]
                 transport = ZenohTransport(bus, me.robot, me.neighbours, state_size)
