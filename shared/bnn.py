@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from swarmmap.shared.models import SirenLayer
+from swarmmap.shared.models import FourierNet
 
 
 def gaussian_kl(mu0: torch.Tensor, sigma0: torch.Tensor, mu1: torch.Tensor | float, sigma1: torch.Tensor | float) -> torch.Tensor:
@@ -67,21 +67,12 @@ class BayesLinear(nn.Module):
         return self.weight_mu.numel() + self.bias_mu.numel()
 
 
-class BayesNet(nn.Module):
+class BayesNet(FourierNet):
     """The paper's BNN: (x, y) -> SIREN (h1, sine) -> Bayesian linear layers (ReLU) -> linear (1, sigmoid)."""
 
     def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float],
                  prior_sigma: float = 0.1, rho_init: float = -5.0):
-        super().__init__()
-        self.shape = list(shape)
-        self.scale = scale
-        x0, y0, x1, y1 = bounds
-        self.register_buffer("centre", torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=torch.float32))
-        layers: list[nn.Module] = [SirenLayer(shape[0], shape[1], scale)]
-        for a, b in zip(shape[1:-2], shape[2:-1]):
-            layers += [BayesLinear(a, b, prior_sigma, rho_init), nn.ReLU()]
-        layers += [nn.Linear(shape[-2], shape[-1])]
-        self.seq = nn.Sequential(*layers)
+        super().__init__(shape, scale, bounds, hidden_layer=lambda a, b: BayesLinear(a, b, prior_sigma, rho_init))
 
     def bayes_layers(self) -> list[BayesLinear]:
         return [m for m in self.seq if isinstance(m, BayesLinear)]
@@ -103,13 +94,6 @@ class BayesNet(nn.Module):
         finally:
             for layer, gen in zip(self.bayes_layers(), saved):
                 layer.generator = gen
-
-    def logits(self, xy: torch.Tensor) -> torch.Tensor:
-        """One stochastic pass: pre-sigmoid outputs (N,) for points (N, 2) in metres."""
-        return self.seq(xy - self.centre).squeeze(-1)
-
-    def forward(self, xy: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.logits(xy))
 
     def kl(self) -> torch.Tensor:
         """Mean KL per Bayesian parameter to the prior (the ``kl_loss`` of equation 7)."""

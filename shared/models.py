@@ -10,6 +10,7 @@ as one flat float32 vector (DiNNO's ``parameters_to_vector``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +36,11 @@ class SirenLayer(nn.Module):
 
 
 class FourierNet(nn.Module):
-    """DiNNO's FourierNet: shape [2, h1, ..., 1]; h1 is the sine layer, the rest ReLU, sigmoid out."""
+    """DiNNO's FourierNet: shape [2, h1, ..., 1]; h1 is the sine layer, the rest ReLU, sigmoid out.
+    ``hidden_layer(in, out)`` makes the hidden layers (the Bayesian network swaps in its own)."""
 
-    def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float]):
+    def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float],
+                 hidden_layer: Callable[[int, int], nn.Module] = nn.Linear):
         super().__init__()
         self.shape = list(shape)
         self.scale = scale
@@ -45,7 +48,7 @@ class FourierNet(nn.Module):
         self.register_buffer("centre", torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=torch.float32))
         layers: list[nn.Module] = [SirenLayer(shape[0], shape[1], scale)]
         for a, b in zip(shape[1:-2], shape[2:-1]):
-            layers += [nn.Linear(a, b), nn.ReLU()]
+            layers += [hidden_layer(a, b), nn.ReLU()]
         layers += [nn.Linear(shape[-2], shape[-1])]
         self.seq = nn.Sequential(*layers)
 
