@@ -189,6 +189,12 @@ class UpSettings(Section):
     record: Path | None = Field(None, description="record every robot's LiDAR stream into this folder (robot-<i>.swrec)")
     replay: Path | None = Field(None, description="run from the recordings in this folder instead of the world's robots")
 
+    @model_validator(mode="after")
+    def _one_source(self) -> UpSettings:
+        if self.record is not None and self.replay is not None:
+            raise ValueError("record and replay exclude each other: choose one")
+        return self
+
     stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
 

@@ -89,3 +89,13 @@ def test_cli_exits_2_with_message(capsys):
 
     assert main(["world", "--set", "world.lidar_beams=0"]) == 2
     assert "world.lidar_beams" in capsys.readouterr().err
+
+
+def test_record_and_replay_exclude_each_other():
+    with pytest.raises(ConfigError, match="up: .*record and replay exclude each other"):
+        load(["up", "--record", "a", "--replay", "b"])
+
+
+def test_centralized_needs_the_inproc_transport():
+    with pytest.raises(ConfigError, match="transport to inproc"):
+        load(["up", "--algorithm", "centralized"])
