@@ -46,16 +46,14 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
 
 
 class RateCounter:
-    """Counts messages and bytes per key; thread-safe."""
+    """Counts bytes per key; thread-safe."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self.messages: collections.Counter[str] = collections.Counter()
         self.bytes: collections.Counter[str] = collections.Counter()
 
     def add(self, key: str, size: int) -> None:
         with self._lock:
-            self.messages[key] += 1
             self.bytes[key] += size
 
     def bytes_where(self, keep: Callable[[str], bool]) -> int:
