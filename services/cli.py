@@ -1,8 +1,9 @@
 """The ``swarmmap`` command: one subcommand per service, plus ``status`` and ``up``.
 
     swarmmap up --preset demo            # the whole system on this machine
-    swarmmap router|world|lidar|learner  # one service (what up, compose and SLURM start)
+    swarmmap router|world|lidar|learner|observer  # one service (what up, compose and SLURM start)
     swarmmap status --config RUN_DIR/config.yaml
+    swarmmap experiment kl-sweep|regularization --out DIR   # the paper's figures
 
 Every subcommand's ``--help`` lists its options; each option is a field of the run's config
 (see swarmmap.shared.config) and overrides the config file and the environment.
@@ -11,6 +12,7 @@ Every subcommand's ``--help`` lists its options; each option is a field of the r
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from collections.abc import Callable
 
@@ -23,9 +25,11 @@ DESCRIPTIONS = {
     "world": "The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
     "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
     "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
+    "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
     "status": "List the live services of a run and their message rates.",
 }
-SECTIONS = {"up": "up", "router": None, "world": "world", "lidar": "lidar", "learner": "learner", "status": None}
+SECTIONS = {"up": "up", "router": None, "world": "world", "lidar": "lidar", "learner": "learner", "observer": "observer",
+            "status": None}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
                            help="with --replay: multiple of the recorded rate, 0 = as fast as the learners take it")
         if name == "status":
             p.add_argument("--window", type=float, default=2.0, help="seconds to measure message rates over")
+    from swarmmap.services.experiments import add_parser
+
+    add_parser(sub)
     return parser
 
 
@@ -69,6 +76,8 @@ def _runner(command: str) -> Callable:
         from swarmmap.services.lidar import run
     elif command == "learner":
         from swarmmap.services.learner.service import run
+    elif command == "observer":
+        from swarmmap.services.observer import run
     else:
         raise ValueError(command)
     return run
@@ -76,6 +85,12 @@ def _runner(command: str) -> Callable:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "experiment":
+        from swarmmap.services.experiments import main as experiment
+
+        setup_logging("info", "experiment")
+        logging.getLogger("up").setLevel(logging.WARNING)  # one line per Metrics is too much here; Progress reports
+        return experiment(args)
     try:
         cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command == "up" else None)
     except ConfigError as exc:

@@ -1,15 +1,16 @@
 """``swarmmap up``: the whole system as local processes on loopback, and its run directory.
 
-Starts a router on a free port, then N learners and N lidar streamers (each its own OS
-process, all Zenoh peers connected to the router, multicast scouting off), waits until they
-are alive, then starts the world. It records every learner's ``Metrics`` into
+Starts a router on a free port, the Rerun observer (unless ``up.observer`` is off), then N
+learners and N lidar streamers (each its own OS process, all Zenoh peers connected to the
+router, multicast scouting off), waits until they are alive, then starts the world. It records every learner's ``Metrics`` into
 ``RUN_DIR/metrics.csv`` as they arrive, and when every learner has finished (or on Ctrl-C,
 or when a service fails) stops the rest and writes ``RUN_DIR/summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
 ``models/robot-<id>.pt``, ``maps/robot-<id>-mean.png``, ``data/robot-<id>.npz`` (training
-points), ``logs/<service>-<id>.log``.
+points), ``logs/<service>-<id>.log``, ``recording.rrd`` and ``observer.json`` (the observer's
+Rerun recording and its time per map).
 """
 
 from __future__ import annotations
@@ -112,6 +113,10 @@ class Launcher:
         if cfg.up.record is not None:
             record = str(cfg.up.record.resolve() / "robot-{robot}.swrec")
             cfg = cfg.model_copy(update={"lidar": cfg.lidar.model_copy(update={"record": record})})
+        if cfg.up.observer:
+            obs = cfg.observer.model_copy(update={"save": cfg.observer.save or run_dir / "recording.rrd",
+                                                  "spawn": cfg.observer.spawn or cfg.up.viewer})
+            cfg = cfg.model_copy(update={"observer": obs})
         self.cfg = cfg
         self.run_dir = run_dir
         self.keys = Keys(self.cfg.key_prefix, run_id)
@@ -153,14 +158,15 @@ class Launcher:
 
     def shutdown(self) -> None:
         """SIGTERM every child (world and streamers first, router last), SIGKILL after the grace time."""
-        order = {"world": 0, "lidar": 1, "learner": 2, "router": 3}
+        order = {"world": 0, "lidar": 1, "learner": 2, "observer": 3, "router": 4}
         for c in sorted(self.children, key=lambda c: order[c.service]):
             if c.proc.poll() is None:
                 c.proc.terminate()
+                grace = self.cfg.up.observer_grace_s if c.service == "observer" else self.cfg.up.stop_grace_s
                 try:
-                    c.proc.wait(self.cfg.up.stop_grace_s)
+                    c.proc.wait(grace)
                 except subprocess.TimeoutExpired:
-                    log.warning("%s did not stop within %.0f s; killing it", c.name, self.cfg.up.stop_grace_s)
+                    log.warning("%s did not stop within %.0f s; killing it", c.name, grace)
                     c.proc.kill()
                     c.proc.wait()
 
@@ -179,6 +185,8 @@ class Launcher:
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
                 bus.subscribe(self.keys.metrics("*"), Metrics, lambda m: self.on_metrics(recorder, m))
                 self.wait_alive(bus, "router", {"0"})
+                if cfg.up.observer:  # first, so that it sees the run from the start
+                    self.spawn("observer", 0)
                 ids = {str(i) for i in range(cfg.robots)}
                 if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
                     self.spawn("learner", 0)

@@ -183,6 +183,24 @@ class LearnerSettings(Section):
         return self
 
 
+class ObserverSettings(Section):
+    """The Rerun observer: each learner's mean and std maps, the robots, scans and curves, live."""
+
+    map_resolution_m: float = Field(0.1, gt=0.005, description="cell size of the observer's mean and std maps (m)")
+    mc_samples: int = Field(50, ge=1, description="Monte-Carlo forward passes per map cell for a bnn's mean and std")
+    std_max: float = Field(0.25, gt=0, le=0.5, description="std that gets the top colour of the std colormap")
+    scan_every: int = Field(1, ge=1, description="log every n-th scan of each robot (poses, trajectory, scan points)")
+    save: Path | None = Field(None, description="write the recording to this .rrd file (swarmmap up: RUN_DIR/recording.rrd)")
+    spawn: bool = Field(False, description="start a local Rerun viewer and stream to it")
+    connect: str | None = Field(None, description="stream to a running viewer at this gRPC URL, "
+                                                  "e.g. rerun+http://127.0.0.1:9876/proxy")
+    serve_web: bool = Field(False, description="serve the web viewer (for containers and remote machines)")
+    web_port: int = Field(9090, ge=0, le=65535, description="serve_web: port of the web viewer page")
+    grpc_port: int = Field(9876, ge=0, le=65535, description="serve_web: port of the gRPC server the page connects to")
+    torch_threads: int = Field(1, ge=1, description="CPU threads for map evaluation")
+    device: str = Field("auto", description="torch device for map evaluation: auto (cuda when available), cpu, cuda ...")
+
+
 class UpSettings(Section):
     """The launcher ``swarmmap up``."""
 
@@ -195,7 +213,12 @@ class UpSettings(Section):
             raise ValueError("record and replay exclude each other: choose one")
         return self
 
+    observer: bool = Field(True, description="start the Rerun observer (it saves RUN_DIR/recording.rrd unless observer.save "
+                                                          "says otherwise)")
+    viewer: bool = Field(False, description="also open a local Rerun viewer (observer.spawn)")
     stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
+    observer_grace_s: float = Field(120.0, gt=0, description="how long the observer gets to map the final States and close "
+                                                             "its recording once the learners are done")
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
 
 
@@ -214,6 +237,7 @@ class RunConfig(Section):
     world: WorldSettings = Field(default_factory=WorldSettings)
     lidar: LidarSettings = Field(default_factory=LidarSettings)
     learner: LearnerSettings = Field(default_factory=LearnerSettings)
+    observer: ObserverSettings = Field(default_factory=ObserverSettings)
     up: UpSettings = Field(default_factory=UpSettings)
 
     def dump_yaml(self) -> str:
@@ -315,6 +339,14 @@ def _set_path(tree: dict[str, Any], path: list[str], value: Any) -> None:
         if not isinstance(tree, dict):
             raise ConfigError(f"config error: {'.'.join(path)}: {part} is not a section")
     tree[path[-1]] = value
+
+
+def apply_override(tree: dict[str, Any], item: str) -> None:
+    """Apply one ``--set SECTION.FIELD=VALUE`` (VALUE read as YAML) to a nested dict."""
+    if "=" not in item:
+        raise ConfigError(f"config error: --set {item!r}: expected KEY=VALUE")
+    key, raw = item.split("=", 1)
+    _set_path(tree, key.strip().split("."), _parse_scalar(raw))
 
 
 def _parse_scalar(text: str) -> Any:
@@ -451,10 +483,7 @@ def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = 
         head, field = dest.split(".", 1)
         _set_path(cli, [field] if head == "top" else [head, field], value)
     for item in getattr(args, "overrides", []):
-        if "=" not in item:
-            raise ConfigError(f"config error: --set {item!r}: expected KEY=VALUE")
-        key, raw = item.split("=", 1)
-        _set_path(cli, key.strip().split("."), _parse_scalar(raw))
+        apply_override(cli, item)
     return resolve(cli, config_file=getattr(args, "config", None), preset=preset, environ=environ)
 
 

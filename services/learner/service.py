@@ -35,7 +35,7 @@ from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, param_count, pick_device, save_model, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap
+from swarmmap.shared.protocol import Keys, Metrics, Samples, State, Tensor, WorldMap
 
 log = logging.getLogger("learner")
 
@@ -99,6 +99,9 @@ class RobotLearner:
         self.collector = Collector()
         bus.subscribe(bus.keys.samples(robot), Samples, self.collector.add)
         self.metrics_pub = bus.publisher(bus.keys.metrics(robot))
+        # Over Zenoh, Algorithm 1 publishes every State; in process, the States the metrics are
+        # reported for are published too, so that an observer sees the maps form either way.
+        self.state_pub = bus.publisher(bus.keys.state(robot)) if self.s.transport != "zenoh" else None
         self.stats = ExchangeStats()
         self.compute_s = 0.0
         self.t_start = 0.0
@@ -184,6 +187,8 @@ class RobotLearner:
                       compute_s=self.compute_s, wait_s=self.stats.wait_s, send_s=self.stats.send_s,
                       n_points=len(self.points), pid=os.getpid(), final=final)
         self.metrics_pub.put(msg)
+        if self.state_pub is not None:
+            self.state_pub.put(State(run=self.cfg.run_id, sender=self.robot, round=k, params=Tensor.of(theta, "<f4")))
         return msg
 
     def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:

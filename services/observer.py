@@ -1,0 +1,283 @@
+"""``swarmmap observer``: watch a run's maps form, live, in Rerun.
+
+The observer subscribes to the world's ground-truth plan, every robot's scans, and every
+learner's State and Metrics. For each learner it evaluates the parameters of its newest State
+on a grid (``observer.map_resolution_m``) and logs the mean map and, for a Bayesian network,
+the standard-deviation map from ``observer.mc_samples`` Monte-Carlo passes, on the ``round``
+timeline. Map evaluation runs in its own thread, apart from message intake: when States come
+faster than maps can be computed, the older ones are dropped and the newest State of each
+learner is mapped next (counted as ``skipped``). The time per map is logged and reported.
+
+Entities (pixel coordinates of the map grid, north up):
+
+- ``world/plan``: the ground-truth occupancy (static); ``world/robots/<i>/pose``,
+  ``world/robots/<i>/trajectory`` and ``world/robots/<i>/scan`` (latest scan's hits), on the
+  ``sim_time`` timeline; ``world/graph``: the communication graph between the robots.
+- ``maps/mean/robot-<i>`` and ``maps/std/robot-<i>``: colour images, on ``round``.
+- ``curves/val_bce/robot-<i>``, ``curves/consensus/robot-<i>``: the learners' metrics, on
+  ``round``; ``observer/map_time_s``: seconds per map.
+
+Sinks, any of them together: ``observer.save`` (an .rrd file; ``swarmmap up`` saves
+``RUN_DIR/recording.rrd``), ``observer.spawn`` (a local viewer), ``observer.connect`` (a viewer
+at a gRPC URL) and ``observer.serve_web`` (the web viewer, for containers and remote machines).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+
+import matplotlib
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import torch
+
+from swarmmap.services.learner.graphs import GraphError, neighbour_sets
+from swarmmap.shared.atomic import atomic_write_text
+from swarmmap.shared.bnn import BayesNet, predict_mean_std
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.config import ConfigError, RunConfig
+from swarmmap.shared.floorplan import OccupancyGrid
+from swarmmap.shared.models import model_from_settings, param_count, pick_device, set_flat
+from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+
+log = logging.getLogger("swarmmap.observer")
+
+ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+                          [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8)
+
+
+def colour(robot: int) -> np.ndarray:
+    return ROBOT_COLOURS[robot % len(ROBOT_COLOURS)]
+
+
+def colorize(values: np.ndarray, cmap: str, vmax: float) -> np.ndarray:
+    """(H, W) values in [0, vmax] (row 0 = south) -> (H, W, 3) uint8 RGB, north up."""
+    lut = (matplotlib.colormaps[cmap](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    idx = np.clip(np.nan_to_num(values / vmax) * 255, 0, 255).astype(np.uint8)
+    return lut[np.flipud(idx)]
+
+
+def blueprint(robots: int, bayesian: bool) -> rrb.Blueprint:
+    """Plan and robots with the curves under them, a grid of mean maps, a grid of std maps."""
+    cols = int(np.ceil(np.sqrt(robots)))
+    left = rrb.Vertical(
+        rrb.Spatial2DView(origin="world", name="plan and robots"),
+        rrb.TimeSeriesView(origin="curves/val_bce", name="validation BCE"),
+        rrb.TimeSeriesView(origin="curves/consensus", name="consensus error"),
+        row_shares=[2, 1, 1])
+    means = rrb.Grid(*[rrb.Spatial2DView(origin=f"maps/mean/robot-{i}", name=f"mean {i}") for i in range(robots)],
+                     grid_columns=cols, name="mean maps")
+    parts = [left, means]
+    if bayesian:
+        parts.append(rrb.Grid(*[rrb.Spatial2DView(origin=f"maps/std/robot-{i}", name=f"std {i}") for i in range(robots)],
+                              grid_columns=cols, name="std maps"))
+    return rrb.Blueprint(rrb.Horizontal(*parts), collapse_panels=True)
+
+
+def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> list[str]:
+    """Attach every sink the config asks for; returns their descriptions."""
+    s = cfg.observer
+    sinks, names = [], []
+    if s.save is not None:
+        s.save.parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(str(s.save)))
+        names.append(f"file {s.save}")
+    if s.spawn:
+        rr.spawn(port=s.grpc_port, connect=False)
+        sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{s.grpc_port}/proxy"))
+        names.append(f"spawned viewer on port {s.grpc_port}")
+    if s.connect:
+        sinks.append(rr.GrpcSink(s.connect))
+        names.append(f"viewer at {s.connect}")
+    if s.serve_web:
+        sinks.append(rr.GrpcServerSink(port=s.grpc_port))
+        names.append(f"web viewer http://127.0.0.1:{s.web_port} (gRPC {s.grpc_port})")
+    if not sinks:
+        raise ConfigError("config error:\n  observer: no sink; set observer.save, observer.spawn, observer.connect "
+                          "or observer.serve_web")
+    rec.set_sinks(*sinks, default_blueprint=bp)
+    if s.serve_web:
+        rr.serve_web_viewer(web_port=s.web_port, open_browser=False,
+                            connect_to=f"rerun+http://127.0.0.1:{s.grpc_port}/proxy")
+    return names
+
+
+class Observer:
+    """Message intake (Zenoh callback threads) and map evaluation (:meth:`map_loop`), one recording."""
+
+    def __init__(self, cfg: RunConfig, rec: rr.RecordingStream, device: torch.device):
+        self.cfg, self.rec, self.device = cfg, rec, device
+        self.s = cfg.observer
+        self.lock = threading.Lock()
+        self.wake = threading.Condition(self.lock)
+        self.newest: dict[int, State] = {}  # newest unmapped State per learner
+        self.mapped_round: dict[int, int] = {}
+        self.trajectories: dict[int, list[list[float]]] = {}
+        self.positions: dict[int, np.ndarray] = {}
+        self.scans_seen: dict[int, int] = {}
+        self.states_in = self.skipped = 0
+        self.map_times: list[float] = []
+        self.grid: OccupancyGrid | None = None
+        self.model: torch.nn.Module | None = None
+        self.n_params = 0
+        self.points = np.zeros((0, 2), np.float32)
+        self.shape = (0, 0)
+        self.graph: dict[int, set[int]] = {}
+
+    # ------------------------------------------------------------------ intake
+    def on_world(self, world: WorldMap) -> None:
+        """The plan, the map grid and the model the States are evaluated with."""
+        grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
+        self.grid = grid.resample(self.s.map_resolution_m)
+        self.points, self.shape = grid.centres(self.s.map_resolution_m)
+        self.points = self.points.astype(np.float32)
+        model = model_from_settings(self.cfg.learner, world.bounds, self.cfg.seed).to(self.device)
+        self.n_params = param_count(model)
+        self.model = model
+        self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), "gray_r", 1.0)), static=True)
+        s = self.cfg.learner
+        positions = world.positions.numpy() if world.positions is not None else None
+        try:
+            self.graph = neighbour_sets("none" if s.algorithm in ("individual", "centralized") else s.graph,
+                                        self.cfg.robots, graph_file=s.graph_file, radius=s.comm_radius_m, positions=positions)
+        except GraphError as exc:
+            log.warning("no communication graph to show: %s", exc)
+        if positions is not None:
+            self.positions = {i: p for i, p in enumerate(positions)}
+        log.info("map grid %d x %d at %.3f m, model %s with %d parameters", self.shape[1], self.shape[0],
+                 self.s.map_resolution_m, s.model, self.n_params)
+
+    def pixel(self, xy: np.ndarray) -> np.ndarray:
+        """World metres (N, 2) -> image pixels (N, 2) of the map grid, north up."""
+        res, (ox, oy) = self.s.map_resolution_m, self.grid.origin
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        return np.stack([(xy[:, 0] - ox) / res, self.shape[0] - (xy[:, 1] - oy) / res], axis=1)
+
+    def on_scan(self, scan: Scan) -> None:
+        if self.grid is None:
+            return
+        i = scan.sender
+        n = self.scans_seen.get(i, 0)
+        self.scans_seen[i] = n + 1
+        if n % self.s.scan_every and not scan.last:
+            return
+        x, y, _ = scan.pose
+        self.positions[i] = np.array([x, y])
+        path = self.trajectories.setdefault(i, [])
+        path.append([x, y])
+        hit = scan.hit.numpy().astype(bool)
+        ang, rng = scan.angles.numpy()[hit], scan.ranges.numpy()[hit]
+        hits = np.stack([x + rng * np.cos(ang), y + rng * np.sin(ang)], axis=1)
+        c = colour(i)
+        self.rec.set_time("sim_time", duration=scan.t)
+        self.rec.log(f"world/robots/{i}/pose", rr.Points2D(self.pixel([x, y]), radii=4, colors=c, labels=str(i)))
+        self.rec.log(f"world/robots/{i}/trajectory", rr.LineStrips2D([self.pixel(np.array(path))], colors=c))
+        self.rec.log(f"world/robots/{i}/scan", rr.Points2D(self.pixel(hits), radii=1.5, colors=c))
+        self.log_graph()
+
+    def log_graph(self) -> None:
+        edges = [self.pixel(np.array([self.positions[i], self.positions[j]]))
+                 for i, nbrs in self.graph.items() for j in nbrs if i < j and i in self.positions and j in self.positions]
+        self.rec.log("world/graph", rr.LineStrips2D(edges, colors=[120, 120, 120]))
+
+    def on_metrics(self, m: Metrics) -> None:
+        self.rec.set_time("round", sequence=m.round)
+        self.rec.log(f"curves/val_bce/robot-{m.sender}", rr.Scalars(m.val_bce))
+        self.rec.log(f"curves/consensus/robot-{m.sender}", rr.Scalars(m.consensus_error))
+
+    def on_state(self, msg: State) -> None:
+        """Keep the newest State of each learner; a State superseded before it was mapped is skipped."""
+        with self.lock:
+            self.states_in += 1
+            old = self.newest.get(msg.sender)
+            if msg.round <= self.mapped_round.get(msg.sender, -1) or (old is not None and old.round >= msg.round):
+                return  # a duplicate or late State
+            if old is not None:
+                self.skipped += 1
+            self.newest[msg.sender] = msg
+            self.wake.notify()
+
+    def check_state(self, msg: State) -> None:
+        """Refuse a State this run's model cannot hold (DSGT's carries its tracker after the parameters)."""
+        if self.n_params and msg.params.shape[0] not in (self.n_params, 2 * self.n_params):
+            raise ProtocolError("shape", f"State.params has {msg.params.shape[0]} values, the model has {self.n_params}")
+
+    # ------------------------------------------------------------------ maps
+    def map_state(self, msg: State) -> float:
+        """Log the mean (and std) map of one State; returns the seconds it took."""
+        t0 = time.perf_counter()
+        flat = torch.from_numpy(msg.params.numpy()[: self.n_params].copy()).to(self.device)
+        set_flat(self.model, flat)
+        mean, std = predict_mean_std(self.model, self.points, samples=self.s.mc_samples, seed=msg.round)
+        h, w = self.shape
+        self.rec.set_time("round", sequence=msg.round)
+        self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), "gray_r", 1.0)))
+        if isinstance(self.model, BayesNet):
+            self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), "magma", self.s.std_max)))
+        dt = time.perf_counter() - t0
+        self.rec.log("observer/map_time_s", rr.Scalars(dt))
+        return dt
+
+    def map_loop(self, stop: threading.Event) -> None:
+        """Map the newest State of each learner, oldest round first, until ``stop``; then map
+        whatever is still waiting (the final States) and return."""
+        while True:
+            with self.lock:
+                while not self.newest and not stop.is_set():
+                    self.wake.wait(0.2)
+                if not self.newest:
+                    return
+                robot = min(self.newest, key=lambda r: self.newest[r].round)
+                msg = self.newest.pop(robot)
+                self.mapped_round[robot] = msg.round
+            if self.model is None:
+                continue
+            self.map_times.append(self.map_state(msg))
+            log.debug("robot %d round %d mapped in %.3f s", robot, msg.round, self.map_times[-1])
+
+    def report(self) -> dict:
+        t = np.array(self.map_times) if self.map_times else np.zeros(1)
+        return {"maps": len(self.map_times), "states_received": self.states_in, "states_skipped": self.skipped,
+                "map_time_mean_s": round(float(t.mean()), 4), "map_time_max_s": round(float(t.max()), 4),
+                "last_round_mapped": self.mapped_round}
+
+
+def run(cfg: RunConfig, stop: threading.Event) -> int:
+    """The observer's main work; returns the process exit status."""
+    s = cfg.observer
+    torch.set_num_threads(s.torch_threads)
+    device = pick_device(s.device)
+    keys = Keys(cfg.key_prefix, cfg.run_id)
+    rec = rr.RecordingStream("swarmmap", recording_id=cfg.run_id)
+    bp = blueprint(cfg.robots, cfg.learner.model == "bnn")
+    sinks = open_sinks(cfg, rec, bp)
+    log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
+    obs = Observer(cfg, rec, device)
+    worker = threading.Thread(target=obs.map_loop, args=(stop,), name="maps")
+    with Bus.open(cfg.zenoh, keys, "observer", 0) as bus:
+        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.learner.collect_timeout_s, stop=stop)
+        if world is None:
+            if stop.is_set():
+                return 0
+            log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.learner.collect_timeout_s)
+            return 3
+        obs.on_world(world)
+        bus.subscribe(keys.scan("*"), Scan, obs.on_scan)
+        bus.subscribe(keys.metrics("*"), Metrics, obs.on_metrics)
+        bus.subscribe(keys.state("*"), State, obs.on_state, check=obs.check_state)
+        bus.announce(0)
+        worker.start()
+        stop.wait()
+    worker.join()  # maps the States still waiting (the final ones) before the recording closes
+    rec.flush()
+    rep = obs.report()
+    log.info("observer done: %d maps, %.3f s per map on average (max %.3f s), %d of %d States skipped",
+             rep["maps"], rep["map_time_mean_s"], rep["map_time_max_s"], rep["states_skipped"], rep["states_received"])
+    if cfg.run_dir is not None:
+        atomic_write_text(cfg.run_dir / "observer.json", json.dumps(rep, indent=2) + "\n")
+    rec.disconnect()
+    return 0

@@ -1,0 +1,71 @@
+"""The Rerun observer: real learner States over Zenoh become mean and std map entities in an
+.rrd that Rerun's own reader finds; the newest State of each learner is the one mapped."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from swarmmap.services.observer import Observer
+from swarmmap.shared.config import resolve
+from swarmmap.shared.protocol import State, Tensor
+
+SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
+
+
+def clean_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
+
+
+def state(robot: int, rnd: int) -> State:
+    return State(run="r", sender=robot, round=rnd, params=Tensor.of(np.zeros(3, np.float32), "<f4"))
+
+
+def test_keeps_only_the_newest_state_of_each_learner():
+    obs = Observer(resolve(preset="smoke", environ={}), rec=None, device=None)
+    for rnd in (0, 1, 2):
+        obs.on_state(state(0, rnd))
+    obs.on_state(state(1, 5))
+    obs.on_state(state(0, 1))  # late: older than the one waiting
+    assert {r: m.round for r, m in obs.newest.items()} == {0: 2, 1: 5}
+    assert obs.skipped == 2 and obs.states_in == 5
+    obs.mapped_round[1] = 5
+    del obs.newest[1]
+    obs.on_state(state(1, 5))  # a duplicate of what was mapped
+    assert 1 not in obs.newest
+
+
+@pytest.mark.e2e
+def test_up_records_every_learners_mean_and_std_maps(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--robots", "2", "--rounds", "10", "--model", "bnn",
+                           "--run-dir", str(run_dir), "--set", "observer.mc_samples=10"],
+                          capture_output=True, text=True, timeout=300, env=clean_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    reader = RrdReader(run_dir / "recording.rrd")
+    assert reader.recordings() and reader.blueprints(), "no recording or no blueprint in the .rrd"
+    timelines: dict[str, set[str]] = {}
+    for chunk in reader.stream():
+        timelines.setdefault(chunk.entity_path, set()).update(chunk.timeline_names)
+    for robot in (0, 1):
+        for entity in (f"/maps/mean/robot-{robot}", f"/maps/std/robot-{robot}", f"/curves/val_bce/robot-{robot}",
+                       f"/world/robots/{robot}/pose"):
+            assert entity in timelines, f"{entity} missing; the recording has {sorted(timelines)}"
+        assert "round" in timelines[f"/maps/std/robot-{robot}"]
+    assert "/world/plan" in timelines
+    report = json.loads((run_dir / "observer.json").read_text())
+    assert report["last_round_mapped"] == {"0": 10, "1": 10}, "the final States were not mapped"
+    assert report["maps"] >= 2 and report["map_time_mean_s"] > 0
+
+
+def test_observer_without_a_sink_is_refused(tmp_path):
+    proc = subprocess.run([*SWARMMAP, "observer", "--preset", "smoke", "--set", "observer.save=null"],
+                          capture_output=True, text=True, timeout=60, env=clean_env())
+    assert proc.returncode == 2
+    assert "observer: no sink" in proc.stderr
