@@ -1,0 +1,416 @@
+"""``swarmmap experiment``: the paper's experiments as commands that make its figures.
+
+    swarmmap experiment kl-sweep --preset demo --out results/kl        # the paper's Figure 6
+    swarmmap experiment regularization --preset demo --out results/reg # its Figures 7 and 8
+    swarmmap experiment score RUN_DIR                                  # uncertainty scores of one run
+
+Each experiment runs the real system (``swarmmap up``, learners in one process by default,
+which gives the same parameters as over Zenoh) once per setting, then writes PNG figures, the
+CSV behind them and ``report.md`` into ``--out``. Every report carries the uncertainty scores
+of :mod:`swarmmap.shared.uncertainty` (NLL, ECE, AUROC of the std for the map's errors, mean std
+over observed and never-observed cells).
+
+- ``kl-sweep``: one isolated agent (``--robots 1``, no communication) whose path visits only
+  ``--rooms`` rooms, so part of the plan stays unseen; one run per ``--kl-weights`` value; a
+  row of mean maps over a row of std maps.
+- ``regularization``: ``--robots`` agents (7), the strategies ``uniform-l2``, ``separate-l2``,
+  ``separate-kl`` and ``--seeds`` seeds each; validation-loss curves (mean over agents and
+  seeds, with their spread), a table of final losses with the percentage difference of
+  separate-kl against each other strategy, and the mean/std maps of the best run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, RunConfig, apply_override, resolve
+
+log = logging.getLogger("experiment")
+
+STRATEGIES = ("uniform-l2", "separate-l2", "separate-kl")
+# Rounds per run where an experiment's default differs from its preset's: at demo size a
+# BNN round of 7 agents takes about 1.7 s on 2 CPU cores, so 2 seeds x 3 strategies of 300
+# rounds take about an hour; the single kl-sweep agent has converged by 400.
+EXPERIMENT_ROUNDS = {("demo", "kl-sweep"): 400, ("demo", "regularization"): 300}
+SCORE_KEYS = ("nll", "ece", "accuracy", "auroc_error", "std_observed", "std_unobserved", "std_ratio")
+
+
+# ----------------------------------------------------------------------------- one run
+
+
+def read_metrics(run_dir: Path) -> dict[int, list[tuple[int, float]]]:
+    """Per robot, (round, val_bce) in round order from ``metrics.csv``."""
+    out: dict[int, dict[int, float]] = {}
+    with (run_dir / "metrics.csv").open() as f:
+        for row in csv.DictReader(f):
+            out.setdefault(int(row["robot"]), {})[int(row["round"])] = float(row["val_bce"])
+    return {r: sorted(v.items()) for r, v in sorted(out.items())}
+
+
+def final_val_bce(run_dir: Path) -> dict[int, float]:
+    """Each robot's last reported val_bce."""
+    return {r: rows[-1][1] for r, rows in read_metrics(run_dir).items()}
+
+
+def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
+    """A robot's saved mean and std maps (``maps/robot-<i>.npz``)."""
+    path = run_dir / "maps" / f"robot-{robot}.npz"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no mean/std maps (only a bnn run saves them)")
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float]]:
+    """Uncertainty scores of every robot's maps in a finished bnn run; observed cells are the
+    ones within ``radius_m`` of any robot's training point."""
+    from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
+    from swarmmap.shared.uncertainty import observed_mask, score_map
+
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        grid = OccupancyGrid(gt["grid"], float(gt["resolution"]), tuple(gt["origin"]))
+    points = [np.load(f)["points"] for f in sorted((run_dir / "data").glob("robot-*.npz"))]
+    scores = {}
+    for path in sorted((run_dir / "maps").glob("robot-*.npz"), key=lambda p: int(p.stem.split("-")[1])):
+        robot = int(path.stem.split("-")[1])
+        maps = load_maps(run_dir, robot)
+        res = float(maps["resolution"])
+        truth_grid = grid.resample(res)
+        shape = maps["mean"].shape
+        pts, (h, w) = truth_grid.centres()
+        truth = truth_grid.occupied(pts).reshape(h, w)[: shape[0], : shape[1]]
+        seen = observed_mask(shape, tuple(maps["origin"]), res, np.concatenate(points) if points else np.zeros((0, 2)),
+                             radius_m)
+        scores[robot] = score_map(maps["mean"], maps["std"], truth, seen)
+    return scores
+
+
+class Progress:
+    """Prints rounds done, current losses and time left of a running experiment every ``every`` s."""
+
+    def __init__(self, total_runs: int, rounds: int, every: float = 15.0):
+        self.total_runs, self.rounds, self.every = total_runs, rounds, every
+        self.done_runs = 0
+        self.t0 = time.monotonic()
+        self.label = ""
+        self.run_dir: Path | None = None
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def start(self, label: str, run_dir: Path) -> None:
+        self.label, self.run_dir, self.run_t0 = label, run_dir, time.monotonic()
+
+    def line(self) -> str | None:
+        if self.run_dir is None or not (self.run_dir / "metrics.csv").exists():
+            return None
+        try:
+            rows = read_metrics(self.run_dir)
+        except (OSError, ValueError, KeyError):
+            return None
+        if not rows:
+            return None
+        done = min(r[-1][0] for r in rows.values())
+        loss = float(np.mean([r[-1][1] for r in rows.values()]))
+        frac = (self.done_runs + done / self.rounds) / self.total_runs
+        elapsed = time.monotonic() - self.t0
+        left = elapsed * (1 - frac) / frac if frac > 0.01 else float("nan")
+        return (f"[{self.done_runs + 1}/{self.total_runs}] {self.label}: round {done}/{self.rounds}, "
+                f"val_bce {loss:.4f}, {elapsed / 60:.1f} min elapsed, about {left / 60:.1f} min left")
+
+    def _loop(self) -> None:
+        while not self.stop.wait(self.every):
+            if (text := self.line()) is not None:
+                print(text, flush=True)
+
+    def finished(self) -> None:
+        self.done_runs += 1
+
+    def close(self) -> None:
+        self.stop.set()
+
+
+def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Path:
+    """One ``swarmmap up`` of ``cfg`` into ``run_dir`` (reused when it already finished)."""
+    from swarmmap.services.launcher import Launcher
+
+    summary = run_dir / "summary.json"
+    if summary.exists() and all(r.get("finished") for r in json.loads(summary.read_text())["learners"].values()):
+        log.info("%s: finished earlier in %s, reusing it", label, run_dir)
+        progress.finished()
+        return run_dir
+    progress.start(label, run_dir)
+    stop = threading.Event()
+    status = Launcher(cfg.model_copy(update={"run_dir": run_dir}), stop).run()
+    progress.finished()
+    if status != 0:
+        raise RuntimeError(f"{label}: swarmmap up failed with status {status}; see {run_dir / 'logs'}")
+    return run_dir
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def map_extent(maps: dict[str, np.ndarray]) -> tuple[float, float, float, float]:
+    h, w = maps["mean"].shape
+    res, (ox, oy) = float(maps["resolution"]), maps["origin"]
+    return (ox, ox + w * res, oy, oy + h * res)
+
+
+def maps_figure(columns: list[tuple[str, dict[str, np.ndarray]]], path: Path, std_max: float = 0.25) -> None:
+    """A row of mean maps over a row of std maps, one column per (title, maps)."""
+    plt = _plt()
+    n = len(columns)
+    fig, axes = plt.subplots(2, n, figsize=(3.2 * n + 0.8, 6.2), squeeze=False, constrained_layout=True)
+    for j, (title, maps) in enumerate(columns):
+        ext = map_extent(maps)
+        axes[0, j].imshow(maps["mean"], origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=ext)
+        axes[0, j].set_title(title, fontsize=9)
+        im = axes[1, j].imshow(maps["std"], origin="lower", cmap="magma", vmin=0, vmax=std_max, extent=ext)
+        for ax in axes[:, j]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    axes[0, 0].set_ylabel("mean")
+    axes[1, 0].set_ylabel("standard deviation")
+    fig.colorbar(im, ax=axes[1, :].tolist(), shrink=0.8, label="std of occupancy")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def curves_figure(curves: dict[str, list[dict[int, list[tuple[int, float]]]]], path: Path) -> None:
+    """Validation BCE against round per strategy: mean over agents and seeds, min-max band."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
+    for name, runs in curves.items():
+        rounds, values = stack_curves(runs)
+        if values.size == 0:
+            continue
+        ax.plot(rounds, values.mean(0), label=name)
+        ax.fill_between(rounds, values.min(0), values.max(0), alpha=0.2)
+    ax.set_xlabel("round")
+    ax.set_ylabel("validation BCE")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def stack_curves(runs: list[dict[int, list[tuple[int, float]]]]) -> tuple[np.ndarray, np.ndarray]:
+    """Rounds common to every agent of every run, and the (agents x runs, rounds) losses."""
+    series = [dict(rows) for run in runs for rows in run.values()]
+    if not series:
+        return np.zeros(0), np.zeros((0, 0))
+    rounds = sorted(set.intersection(*(set(s) for s in series)))
+    return np.array(rounds), np.array([[s[k] for k in rounds] for s in series])
+
+
+def write_csv(path: Path, header: list[str], rows: list[list]) -> None:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def fmt(x: float, digits: int = 4) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
+
+
+def scores_table(rows: list[tuple[str, dict[str, float]]]) -> list[str]:
+    lines = ["| run | " + " | ".join(SCORE_KEYS) + " |", "| --- |" + " --- |" * len(SCORE_KEYS)]
+    lines += [f"| {name} | " + " | ".join(fmt(s[k]) for k in SCORE_KEYS) + " |" for name, s in rows]
+    return lines
+
+
+def mean_scores(per_robot: dict[int, dict[str, float]]) -> dict[str, float]:
+    return {k: float(np.nanmean([s[k] for s in per_robot.values()])) for k in SCORE_KEYS}
+
+
+# ----------------------------------------------------------------------------- experiments
+
+
+def base_config(args: argparse.Namespace) -> RunConfig:
+    overrides: dict = {"learner": {"model": "bnn", "transport": args.transport}, "up": {"observer": args.observer},
+                       "log_level": "warning"}
+    rounds = args.rounds or EXPERIMENT_ROUNDS.get((args.preset, args.experiment))
+    if rounds:
+        overrides["learner"]["rounds"] = rounds
+    for item in args.set or []:
+        apply_override(overrides, item)
+    return resolve(overrides, preset=args.preset, environ={})
+
+
+def kl_sweep(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    base = base_config(args)
+    world = base.world.model_copy(update={"rooms_per_robot": args.rooms})
+    learner = base.learner.model_copy(update={"algorithm": "individual"})
+    base = base.model_copy(update={"robots": 1, "world": world, "learner": learner})
+    progress = Progress(len(args.kl_weights), base.learner.rounds)
+    columns, rows, scored = [], [], []
+    try:
+        for kl in args.kl_weights:
+            cfg = base.model_copy(update={"learner": base.learner.model_copy(update={"kl_weight": kl})})
+            run_dir = run_up(cfg, out / "runs" / f"kl-{kl:g}", progress, f"kl_weight {kl:g}")
+            scores = score_run(run_dir)[0]
+            val = final_val_bce(run_dir)[0]
+            columns.append((f"kl_weight = {kl:g}", load_maps(run_dir, 0)))
+            rows.append([kl, val] + [scores[k] for k in SCORE_KEYS])
+            scored.append((f"kl_weight {kl:g}", scores))
+    finally:
+        progress.close()
+    maps_figure(columns, out / "kl_sweep_maps.png", base.observer.std_max)
+    write_csv(out / "kl_sweep.csv", ["kl_weight", "final_val_bce", *SCORE_KEYS], rows)
+    lines = [f"# KL-weight sweep (the paper's Figure 6): preset {base.preset}", "",
+             f"One isolated agent (no communication) whose path visits {args.rooms} room(s), so part of the plan "
+             f"stays unseen; {base.learner.rounds} rounds of {base.learner.primal_iterations} steps, "
+             f"model {base.learner.model_shape}, prior sigma {base.learner.prior_sigma}, rho init {base.learner.bnn_rho_init}.",
+             "", "![mean and std maps](kl_sweep_maps.png)", "",
+             "| kl_weight | final val_bce |", "| --- | --- |"]
+    lines += [f"| {r[0]:g} | {fmt(r[1])} |" for r in rows]
+    lines += ["", "Uncertainty scores (observed = within 0.1 m of a training point):", ""] + scores_table(scored)
+    lines += ["", f"Command: `{' '.join(sys.argv)}`", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+def regularization(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    base = base_config(args)
+    base = base.model_copy(update={"robots": args.robots})
+    strategies = args.strategies
+    progress = Progress(len(strategies) * len(args.seeds), base.learner.rounds)
+    curves: dict[str, list] = {s: [] for s in strategies}
+    finals: dict[str, list[float]] = {s: [] for s in strategies}
+    scores: dict[str, list[dict[str, float]]] = {s: [] for s in strategies}
+    runs: list[tuple[float, str, int, Path]] = []
+    rows = []
+    try:
+        for seed in args.seeds:
+            for strategy in strategies:
+                cfg = base.model_copy(update={"seed": seed,
+                                              "learner": base.learner.model_copy(update={"regularization": strategy})})
+                run_dir = run_up(cfg, out / "runs" / f"{strategy}-seed{seed}", progress, f"{strategy} seed {seed}")
+                metrics = read_metrics(run_dir)
+                final = float(np.mean([rows_[-1][1] for rows_ in metrics.values()]))
+                s = mean_scores(score_run(run_dir))
+                curves[strategy].append(metrics)
+                finals[strategy].append(final)
+                scores[strategy].append(s)
+                runs.append((final, strategy, seed, run_dir))
+                rows.append([strategy, seed, final] + [s[k] for k in SCORE_KEYS])
+    finally:
+        progress.close()
+    write_csv(out / "regularization_runs.csv", ["strategy", "seed", "final_val_bce_mean_over_agents", *SCORE_KEYS], rows)
+    curve_rows = []
+    for strategy in strategies:
+        rounds, values = stack_curves(curves[strategy])
+        for i, k in enumerate(rounds):
+            curve_rows.append([strategy, int(k), values[:, i].mean(), values[:, i].min(), values[:, i].max()])
+    write_csv(out / "regularization_curves.csv", ["strategy", "round", "val_bce_mean", "val_bce_min", "val_bce_max"],
+              curve_rows)
+    curves_figure(curves, out / "regularization_curves.png")
+    best = min(runs)
+    best_maps = [(f"robot {r}", load_maps(best[3], r)) for r in sorted(final_val_bce(best[3]))[:4]]
+    maps_figure(best_maps, out / "best_run_maps.png", base.observer.std_max)
+
+    mean = {s: float(np.mean(finals[s])) for s in strategies}
+    lines = [f"# Regularisation strategies (the paper's Figures 7 and 8): preset {base.preset}", "",
+             f"{base.robots} agents, DiNNO over a {base.learner.graph} graph, {base.learner.rounds} rounds, "
+             f"seeds {', '.join(map(str, args.seeds))}, transport {base.learner.transport}; model {base.learner.model_shape}, "
+             f"kl_weight {base.learner.kl_weight:g}.", "",
+             "![validation loss](regularization_curves.png)", "",
+             "| strategy | final val_bce (mean over agents, then seeds) | spread over seeds |", "| --- | --- | --- |"]
+    lines += [f"| {s} | {fmt(mean[s])} | {fmt(min(finals[s]))} to {fmt(max(finals[s]))} |" for s in strategies]
+    if "separate-kl" in strategies:
+        lines += [""]
+        for s in strategies:
+            if s != "separate-kl":
+                diff = 100 * (mean["separate-kl"] - mean[s]) / mean[s]
+                lines.append(f"- separate-kl against {s}: {diff:+.1f}% "
+                             f"({'lower' if diff < 0 else 'higher'} validation loss)")
+        lines.append("- the paper reports separate-kl 12-30% lower than the other strategies")
+    lines += ["", "Uncertainty scores, mean over agents and seeds (observed = within 0.1 m of any robot's "
+                  "training point):", ""]
+    lines += scores_table([(s, {k: float(np.nanmean([x[k] for x in scores[s]])) for k in SCORE_KEYS}) for s in strategies])
+    lines += ["", f"Best run: {best[1]} seed {best[2]} (val_bce {fmt(best[0])}), its first agents' maps:", "",
+              "![best run maps](best_run_maps.png)", "", f"Command: `{' '.join(sys.argv)}`", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+def score(args: argparse.Namespace) -> int:
+    per_robot = score_run(args.run_dir, args.radius)
+    if not per_robot:
+        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn run saves std maps)", file=sys.stderr)
+        return 2
+    vals = final_val_bce(args.run_dir)
+    print("\n".join(scores_table([(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()])))
+    return 0
+
+
+def add_parser(sub) -> None:
+    """The ``experiment`` subcommand and its three experiments."""
+    p = sub.add_parser("experiment", help="The paper's experiments: kl-sweep, regularization; score a run.",
+                       description=__doc__.split("\n\n")[0])
+    exp = p.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    for name, text in (("kl-sweep", "One isolated agent, one run per kl_weight (the paper's Figure 6)."),
+                       ("regularization", "7 agents, the three regularisation strategies (the paper's Figures 7 and 8).")):
+        e = exp.add_parser(name, help=text, description=text, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        e.add_argument("--out", type=Path, required=True, help="directory for the runs, figures, CSV and report.md")
+        e.add_argument("--preset", choices=list(PRESETS), default=DEFAULT_PRESET, help="size: smoke, demo, paper (GPU)")
+        e.add_argument("--rounds", type=int, default=0,
+                       help="rounds per run (0: the preset's; for demo, 400 in kl-sweep and 300 in regularization)")
+        e.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
+                       help="learners in one process (same result, faster) or one process per robot over Zenoh")
+        e.add_argument("--observer", action="store_true", help="also record each run in Rerun (RUN_DIR/recording.rrd)")
+        e.add_argument("--set", action="append", metavar="KEY=VALUE", help="any config field, e.g. learner.prior_sigma=0.1")
+        if name == "kl-sweep":
+            e.add_argument("--kl-weights", type=float, nargs="+", default=[1e-4, 5e-3, 5e-1], help="kl_weight values")
+            e.add_argument("--rooms", type=int, default=2, help="rooms the agent's path visits (the rest stays unseen)")
+        else:
+            e.add_argument("--robots", type=int, default=7, help="agents")
+            e.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds (plan, paths and initialisation)")
+            e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES), help="strategies to run")
+    s = exp.add_parser("score", help="Uncertainty scores of a finished bnn run's maps.",
+                       description="Uncertainty scores of a finished bnn run's maps.")
+    s.add_argument("run_dir", type=Path, help="the run directory")
+    s.add_argument("--radius", type=float, default=0.1, help="cells within this distance (m) of a training point are observed")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        if args.experiment == "kl-sweep":
+            return kl_sweep(args)
+        if args.experiment == "regularization":
+            return regularization(args)
+        return score(args)
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        return 2
+    except (RuntimeError, FileNotFoundError) as exc:
+        print(f"experiment failed: {exc}", file=sys.stderr)
+        return 1

@@ -1,0 +1,64 @@
+"""``swarmmap experiment`` at smoke size: each runs the real system and writes its figures,
+the CSV behind them and a report with the uncertainty scores."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+
+import pytest
+from PIL import Image
+
+pytestmark = pytest.mark.e2e
+SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
+
+
+def clean_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    proc = subprocess.run([*SWARMMAP, "experiment", *args], capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc
+
+
+def assert_png(path, min_size=(300, 200)):
+    with Image.open(path) as img:
+        assert img.size[0] >= min_size[0] and img.size[1] >= min_size[1], f"{path}: {img.size}"
+
+
+def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
+    out = tmp_path / "kl"
+    run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "1e-4", "0.5", "--rooms", "1", "--out", str(out))
+    assert_png(out / "kl_sweep_maps.png")
+    rows = list(csv.DictReader((out / "kl_sweep.csv").open()))
+    assert [float(r["kl_weight"]) for r in rows] == [1e-4, 0.5]
+    for r in rows:
+        assert 0 < float(r["final_val_bce"]) < 0.7
+        assert 0 <= float(r["std_observed"]) <= 0.5 and float(r["ece"]) >= 0
+    # A larger KL weight keeps the weights' spread nearer the prior: more std everywhere.
+    assert float(rows[1]["std_observed"]) > float(rows[0]["std_observed"])
+    report = (out / "report.md").read_text()
+    assert "kl_sweep_maps.png" in report and "auroc_error" in report and "std_unobserved" in report
+
+
+def test_regularization_writes_curves_table_maps_and_report(tmp_path):
+    out = tmp_path / "reg"
+    proc = run("regularization", "--preset", "smoke", "--robots", "2", "--rounds", "10", "--seeds", "0",
+               "--out", str(out))
+    for name in ("regularization_curves.png", "best_run_maps.png"):
+        assert_png(out / name)
+    runs = list(csv.DictReader((out / "regularization_runs.csv").open()))
+    assert sorted(r["strategy"] for r in runs) == ["separate-kl", "separate-l2", "uniform-l2"]
+    curves = list(csv.DictReader((out / "regularization_curves.csv").open()))
+    assert {r["strategy"] for r in curves} == {"separate-kl", "separate-l2", "uniform-l2"}
+    assert {int(r["round"]) for r in curves} >= {0, 10}
+    for r in curves:
+        assert float(r["val_bce_min"]) <= float(r["val_bce_mean"]) <= float(r["val_bce_max"])
+    report = (out / "report.md").read_text()
+    assert "separate-kl against uniform-l2" in report and "separate-kl against separate-l2" in report
+    assert "nll" in report and "best_run_maps.png" in report
+    assert "separate-kl against uniform-l2" in proc.stdout  # the report is printed too
