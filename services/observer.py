@@ -4,7 +4,8 @@ The observer subscribes to the world's ground-truth plan, every robot's scans, a
 learner's State and Metrics. For each learner it evaluates the parameters of its newest State
 on a grid (``observer.map_resolution_m``) and logs the mean map and, for a Bayesian network,
 the standard-deviation map from ``observer.mc_samples`` Monte-Carlo passes, on the ``round``
-timeline. Map evaluation runs in its own thread, apart from message intake: when States come
+timeline, every ``observer.map_every`` rounds (by default the rounds the learners report their
+metrics for) and at the final round. Map evaluation runs in its own thread, apart from message intake: when States come
 faster than maps can be computed, the older ones are dropped and the newest State of each
 learner is mapped next (counted as ``skipped``). The time per map is logged and reported.
 
@@ -112,6 +113,7 @@ class Observer:
     def __init__(self, cfg: RunConfig, rec: rr.RecordingStream, device: torch.device):
         self.cfg, self.rec, self.device = cfg, rec, device
         self.s = cfg.observer
+        self.map_every = self.s.map_every or cfg.learner.eval_every
         self.lock = threading.Lock()
         self.wake = threading.Condition(self.lock)
         self.newest: dict[int, State] = {}  # newest unmapped State per learner
@@ -191,6 +193,8 @@ class Observer:
 
     def on_state(self, msg: State) -> None:
         """Keep the newest State of each learner; a State superseded before it was mapped is skipped."""
+        if msg.round % self.map_every and msg.round != self.cfg.learner.rounds:
+            return  # between map rounds: mapping every State would take the CPU the learners need
         with self.lock:
             self.states_in += 1
             old = self.newest.get(msg.sender)

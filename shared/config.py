@@ -188,6 +188,8 @@ class ObserverSettings(Section):
 
     map_resolution_m: float = Field(0.1, gt=0.005, description="cell size of the observer's mean and std maps (m)")
     mc_samples: int = Field(50, ge=1, description="Monte-Carlo forward passes per map cell for a bnn's mean and std")
+    map_every: int = Field(0, ge=0, description="map a learner's States of every this many rounds, and its final one "
+                                                "(0: learner.eval_every, the rounds its metrics are reported for)")
     std_max: float = Field(0.25, gt=0, le=0.5, description="std that gets the top colour of the std colormap")
     scan_every: int = Field(1, ge=1, description="log every n-th scan of each robot (poses, trajectory, scan points)")
     save: Path | None = Field(None, description="write the recording to this .rrd file (swarmmap up: RUN_DIR/recording.rrd)")

@@ -28,7 +28,7 @@ def state(robot: int, rnd: int) -> State:
 
 
 def test_keeps_only_the_newest_state_of_each_learner():
-    obs = Observer(resolve(preset="smoke", environ={}), rec=None, device=None)
+    obs = Observer(resolve(preset="smoke", environ={}, cli={"observer": {"map_every": 1}}), rec=None, device=None)
     for rnd in (0, 1, 2):
         obs.on_state(state(0, rnd))
     obs.on_state(state(1, 5))
@@ -39,6 +39,18 @@ def test_keeps_only_the_newest_state_of_each_learner():
     del obs.newest[1]
     obs.on_state(state(1, 5))  # a duplicate of what was mapped
     assert 1 not in obs.newest
+
+
+def test_maps_only_every_map_every_rounds_and_the_final_one():
+    cfg = resolve(preset="smoke", environ={}, cli={"observer": {"map_every": 5}, "learner": {"rounds": 12}})
+    obs = Observer(cfg, rec=None, device=None)
+    for rnd in range(13):
+        obs.on_state(state(0, rnd))
+        if rnd in (5, 10, 12):
+            assert obs.newest[0].round == rnd
+        if rnd == 0:
+            assert obs.newest[0].round == 0
+    assert obs.states_in == 4  # rounds 0, 5, 10 and the final 12
 
 
 @pytest.mark.e2e
