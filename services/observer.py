@@ -13,7 +13,7 @@ Entities (pixel coordinates of the map grid, north up):
 
 - ``world/plan``: the ground-truth occupancy (static); ``world/robots/<i>/pose``,
   ``world/robots/<i>/trajectory`` and ``world/robots/<i>/scan`` (latest scan's hits), on the
-  ``sim_time`` timeline; ``world/graph``: the communication graph between the robots.
+  ``sim_time`` timeline (and on ``round`` at the newest round reported so far); ``world/graph``: the communication graph between the robots.
 - ``maps/mean/robot-<i>`` and ``maps/std/robot-<i>``: colour images, on ``round``.
 - ``curves/val_bce/robot-<i>``, ``curves/consensus/robot-<i>``: the learners' metrics, on
   ``round``; ``observer/map_time_s``: seconds per map.
@@ -122,6 +122,7 @@ class Observer:
         self.positions: dict[int, np.ndarray] = {}
         self.scans_seen: dict[int, int] = {}
         self.states_in = self.skipped = 0
+        self.latest_round = 0  # the newest round any learner reported: world entities are logged at it
         self.map_times: list[float] = []
         self.grid: OccupancyGrid | None = None
         self.model: torch.nn.Module | None = None
@@ -176,6 +177,7 @@ class Observer:
         hits = np.stack([x + rng * np.cos(ang), y + rng * np.sin(ang)], axis=1)
         c = colour(i)
         self.rec.set_time("sim_time", duration=scan.t)
+        self.rec.set_time("round", sequence=self.latest_round)  # so the plan view shows the robots on either timeline
         self.rec.log(f"world/robots/{i}/pose", rr.Points2D(self.pixel([x, y]), radii=4, colors=c, labels=str(i)))
         self.rec.log(f"world/robots/{i}/trajectory", rr.LineStrips2D([self.pixel(np.array(path))], colors=c))
         self.rec.log(f"world/robots/{i}/scan", rr.Points2D(self.pixel(hits), radii=1.5, colors=c))
@@ -187,6 +189,7 @@ class Observer:
         self.rec.log("world/graph", rr.LineStrips2D(edges, colors=[120, 120, 120]))
 
     def on_metrics(self, m: Metrics) -> None:
+        self.latest_round = max(self.latest_round, m.round)
         self.rec.set_time("round", sequence=m.round)
         self.rec.log(f"curves/val_bce/robot-{m.sender}", rr.Scalars(m.val_bce))
         self.rec.log(f"curves/consensus/robot-{m.sender}", rr.Scalars(m.consensus_error))
