@@ -2,9 +2,10 @@
 
 Starts a router on a free port, the Rerun observer (unless ``up.observer`` is off), then N
 learners and N lidar streamers (each its own OS process, all Zenoh peers connected to the
-router, multicast scouting off), waits until they are alive, then starts the world. It records every learner's ``Metrics`` into
-``RUN_DIR/metrics.csv`` as they arrive, and when every learner has finished (or on Ctrl-C,
-or when a service fails) stops the rest and writes ``RUN_DIR/summary.json``.
+router, multicast scouting off), waits until they are alive, then starts the world. It
+records every learner's ``Metrics`` into ``RUN_DIR/metrics.csv`` as they arrive, and when
+every learner has finished (or on Ctrl-C, or when a service fails) stops the rest and writes
+``RUN_DIR/summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),

@@ -243,7 +243,11 @@ class Observer:
                 self.mapped_round[robot] = msg.round
             if self.model is None:
                 continue
-            self.map_times.append(self.map_state(msg))
+            try:
+                self.map_times.append(self.map_state(msg))
+            except Exception:  # one bad map must not end the observer: say so and go on
+                log.exception("robot %d round %d: could not map this State", robot, msg.round)
+                continue
             log.debug("robot %d round %d mapped in %.3f s", robot, msg.round, self.map_times[-1])
 
     def report(self) -> dict:
