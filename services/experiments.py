@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, RunConfig, apply_override, resolve
 
@@ -140,15 +141,40 @@ class Progress:
         self.stop.set()
 
 
+SAME_RUN = ("robots", "seed", "world", "lidar", "learner")  # what makes a finished run reusable
+
+
+def same_settings(run_dir: Path, cfg: RunConfig) -> bool:
+    """Whether ``run_dir`` was run with the same robots, seed, world, sensor and learner settings."""
+    try:
+        old = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    new = cfg.model_dump(mode="json")
+    return isinstance(old, dict) and all(old.get(k) == new[k] for k in SAME_RUN)
+
+
+def finished(run_dir: Path) -> bool:
+    try:
+        return all(r.get("finished") for r in json.loads((run_dir / "summary.json").read_text())["learners"].values())
+    except (OSError, ValueError, KeyError):
+        return False
+
+
 def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Path:
-    """One ``swarmmap up`` of ``cfg`` into ``run_dir`` (reused when it already finished)."""
+    """One ``swarmmap up`` of ``cfg`` into ``run_dir``: reused when it finished with the same
+    settings, resumed (from the learners' checkpoints) when it stopped part-way, moved aside
+    when it holds other settings."""
     from swarmmap.services.launcher import Launcher
 
-    summary = run_dir / "summary.json"
-    if summary.exists() and all(r.get("finished") for r in json.loads(summary.read_text())["learners"].values()):
-        log.info("%s: finished earlier in %s, reusing it", label, run_dir)
+    if run_dir.exists() and same_settings(run_dir, cfg) and finished(run_dir):
+        log.info("%s: finished earlier in %s with the same settings, reusing it", label, run_dir)
         progress.finished()
         return run_dir
+    if run_dir.exists() and not same_settings(run_dir, cfg):  # keep it, but out of this run's way
+        aside = run_dir.with_name(f"{run_dir.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
+        run_dir.rename(aside)
+        log.warning("%s: %s holds a run with other settings; moved it to %s", label, run_dir, aside)
     progress.start(label, run_dir)
     stop = threading.Event()
     status = Launcher(cfg.model_copy(update={"run_dir": run_dir}), stop).run()

@@ -43,6 +43,13 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
     assert float(rows[1]["std_observed"]) > float(rows[0]["std_observed"])
     report = (out / "report.md").read_text()
     assert "kl_sweep_maps.png" in report and "auroc_error" in report and "std_unobserved" in report
+    # Run again: the finished runs are reused; with other settings they are not.
+    again = run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "1e-4", "--rooms", "1", "--out", str(out))
+    assert "reusing it" in again.stderr
+    other = run("kl-sweep", "--preset", "smoke", "--rounds", "5", "--kl-weights", "1e-4", "--rooms", "1", "--out", str(out))
+    assert "reusing it" not in other.stderr
+    assert [float(r["final_val_bce"]) for r in csv.DictReader((out / "kl_sweep.csv").open())] != [
+        float(rows[0]["final_val_bce"])], "a run of 5 rounds reported the 10-round result"
 
 
 def test_regularization_writes_curves_table_maps_and_report(tmp_path):
