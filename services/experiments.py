@@ -125,9 +125,9 @@ class Progress:
         loss = float(np.mean([r[-1][1] for r in rows.values()]))
         frac = (self.done_runs + done / self.rounds) / self.total_runs
         elapsed = time.monotonic() - self.t0
-        left = elapsed * (1 - frac) / frac if frac > 0.01 else float("nan")
+        left = f"about {elapsed * (1 - frac) / frac / 60:.1f} min left" if frac > 0.01 else "time left not known yet"
         return (f"[{self.done_runs + 1}/{self.total_runs}] {self.label}: round {done}/{self.rounds}, "
-                f"val_bce {loss:.4f}, {elapsed / 60:.1f} min elapsed, about {left / 60:.1f} min left")
+                f"val_bce {loss:.4f}, {elapsed / 60:.1f} min elapsed, {left}")
 
     def _loop(self) -> None:
         while not self.stop.wait(self.every):
