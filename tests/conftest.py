@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import socket
+import sys
 import time
 import uuid
 from collections.abc import Callable
@@ -14,6 +16,12 @@ from swarmmap.shared.config import ZenohSettings
 
 REPO = Path(__file__).resolve().parents[1]
 KIT_DATA = REPO.parent / "shared" / "data"
+SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]  # the `swarmmap` command of this interpreter
+
+
+def clean_env() -> dict[str, str]:
+    """This process's environment without SWARMMAP_* settings, for a service under test."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
 
 
 def free_port() -> int:

@@ -5,17 +5,16 @@ from __future__ import annotations
 import csv
 import json
 import subprocess
-import sys
 
 import pytest
 
-from tests.e2e.test_up import clean_env
+from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e
 
 
 def up(run_dir, *extra):
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "30",
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "30",
                            "--run-dir", str(run_dir), *extra], capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads((run_dir / "summary.json").read_text())["learners"]

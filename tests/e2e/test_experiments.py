@@ -4,19 +4,15 @@ the CSV behind them and a report with the uncertainty scores."""
 from __future__ import annotations
 
 import csv
-import os
 import subprocess
-import sys
 
 import pytest
 from PIL import Image
 
+from tests.conftest import SWARMMAP, clean_env
+
 pytestmark = pytest.mark.e2e
-SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
 
-
-def clean_env() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
 
 
 def run(*args: str) -> subprocess.CompletedProcess:

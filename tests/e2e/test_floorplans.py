@@ -5,17 +5,14 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from tests.conftest import KIT_DATA
+from tests.conftest import KIT_DATA, SWARMMAP, clean_env
 from tests.e2e.mapcheck import observed_agreement
-from tests.e2e.test_up import clean_env
 
 pytestmark = pytest.mark.e2e
-SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
 CUBICASA = KIT_DATA / "cubicasa5k" / "353" / "model.svg"
 DINNO = KIT_DATA / "dinno-floorplan-32"
 

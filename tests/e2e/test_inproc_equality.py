@@ -6,19 +6,18 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import pytest
 import torch
 
 from swarmmap.shared.models import load_model
-from tests.e2e.test_up import clean_env
+from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e
 
 
 def run(run_dir, *extra):
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--robots", "3",
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--robots", "3",
                            "--rounds", "12", "--seed", "5", "--run-dir", str(run_dir), *extra],
                           capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 0, proc.stderr[-3000:]

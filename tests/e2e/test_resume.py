@@ -6,19 +6,18 @@ from __future__ import annotations
 import csv
 import shutil
 import subprocess
-import sys
 
 import pytest
 import torch
 
 from swarmmap.shared.models import load_model
-from tests.e2e.test_up import clean_env
+from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e
 
 
 def up(run_dir, *extra):
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "20",
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "20",
                            "--set", "learner.checkpoint_every=10", "--run-dir", str(run_dir), *extra],
                           capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -50,7 +49,7 @@ def test_unreadable_checkpoint_is_named(tmp_path):
     run = tmp_path / "c"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "robot-1.pt").write_bytes(b"not a checkpoint")
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--rounds", "5",
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "5",
                            "--run-dir", str(run)], capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 1
     assert "cannot read checkpoint" in (run / "logs" / "learner-1.log").read_text()

@@ -8,7 +8,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,15 +18,11 @@ from PIL import Image
 from swarmmap.services.world import build_plan
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.models import load_model, predict
-from tests.conftest import wait_until
+from tests.conftest import SWARMMAP, clean_env, wait_until
 from tests.e2e.mapcheck import observed_agreement
 
 pytestmark = pytest.mark.e2e
-SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
 
-
-def clean_env() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
 
 
 @pytest.fixture(scope="module")

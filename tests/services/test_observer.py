@@ -4,9 +4,7 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -15,12 +13,7 @@ from rerun.chunk import RrdReader
 from swarmmap.services.observer import Observer
 from swarmmap.shared.config import resolve
 from swarmmap.shared.protocol import State, Tensor
-
-SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]
-
-
-def clean_env() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
+from tests.conftest import SWARMMAP, clean_env
 
 
 def state(robot: int, rnd: int) -> State:

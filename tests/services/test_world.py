@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from swarmmap.services.world import Simulation
 from swarmmap.shared.config import WorldSettings
 from swarmmap.shared.floorplan import procedural
 from swarmmap.shared.sensing import sensor_model
+from tests.conftest import SWARMMAP
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_batched_and_per_robot_rays_agree(room_sim):
 
 def test_export_writes_stl_png_and_npz(tmp_path):
     out = tmp_path / "export"
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "world", "--preset", "smoke", "--export",
+    proc = subprocess.run([*SWARMMAP, "world", "--preset", "smoke", "--export",
                            str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     mesh = trimesh.load(out / "plan.stl")
@@ -78,7 +78,7 @@ def test_export_writes_stl_png_and_npz(tmp_path):
 def test_bad_floorplan_stops_the_world_with_its_name(tmp_path):
     bad = tmp_path / "plan.svg"
     bad.write_text("not xml at all <")
-    proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "world", "--floorplan", str(bad), "--export",
+    proc = subprocess.run([*SWARMMAP, "world", "--floorplan", str(bad), "--export",
                            str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "plan.svg: not a valid SVG/XML" in proc.stderr
