@@ -80,19 +80,18 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
 
     with np.load(run_dir / "groundtruth.npz") as gt:
         grid = OccupancyGrid(gt["grid"], float(gt["resolution"]), tuple(gt["origin"]))
-    points = [np.load(f)["points"] for f in sorted((run_dir / "data").glob("robot-*.npz"))]
+    files = sorted((run_dir / "data").glob("robot-*.npz"))
+    points = np.concatenate([np.load(f)["points"] for f in files]) if files else np.zeros((0, 2))
+    references: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (resolution, shape, origin) -> truth, observed
     scores = {}
     for path in sorted((run_dir / "maps").glob("robot-*.npz"), key=lambda p: int(p.stem.split("-")[1])):
         robot = int(path.stem.split("-")[1])
         maps = load_maps(run_dir, robot)
-        res = float(maps["resolution"])
-        truth_grid = grid.resample(res)
-        shape = maps["mean"].shape
-        pts, (h, w) = truth_grid.centres()
-        truth = truth_grid.occupied(pts).reshape(h, w)[: shape[0], : shape[1]]
-        seen = observed_mask(shape, tuple(maps["origin"]), res, np.concatenate(points) if points else np.zeros((0, 2)),
-                             radius_m)
-        scores[robot] = score_map(maps["mean"], maps["std"], truth, seen)
+        res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
+        if (res, shape, origin) not in references:  # every robot's map shares its grid, normally
+            truth = grid.resample(res).grid[: shape[0], : shape[1]] > 0
+            references[res, shape, origin] = truth, observed_mask(shape, origin, res, points, radius_m)
+        scores[robot] = score_map(maps["mean"], maps["std"], *references[res, shape, origin])
     return scores
 
 
