@@ -36,7 +36,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
-from swarmmap.services.learner.graphs import GraphError, neighbour_sets
+from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
 from swarmmap.shared.bus import Bus
@@ -145,8 +145,7 @@ class Observer:
         s = self.cfg.learner
         positions = world.positions.numpy() if world.positions is not None else None
         try:
-            self.graph = neighbour_sets("none" if s.algorithm in ("individual", "centralized") else s.graph,
-                                        self.cfg.robots, graph_file=s.graph_file, radius=s.comm_radius_m, positions=positions)
+            self.graph = run_graph(s, self.cfg.robots, positions)
         except GraphError as exc:
             log.warning("no communication graph to show: %s", exc)
         if positions is not None:

@@ -75,3 +75,10 @@ def metropolis_weights(graph: dict[int, set[int]], node: int) -> dict[int, float
     row = {j: 1.0 / (1 + max(deg[node], deg[j])) for j in graph[node]}
     row[node] = 1.0 - sum(row.values())
     return row
+
+
+def run_graph(settings, robots: int, positions: np.ndarray | None) -> dict[int, set[int]]:
+    """The communication graph a run's LearnerSettings describe: none for the baselines that do
+    not communicate (individual, centralized), else ``settings.graph``."""
+    kind = "none" if settings.algorithm in ("individual", "centralized") else settings.graph
+    return neighbour_sets(kind, robots, graph_file=settings.graph_file, radius=settings.comm_radius_m, positions=positions)

@@ -27,7 +27,7 @@ import torch
 
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce
 from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
-from swarmmap.services.learner.graphs import GraphError, metropolis_weights, neighbour_sets
+from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
@@ -157,8 +157,7 @@ class RobotLearner:
         self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
         positions = world.positions.numpy() if world.positions is not None else None
         try:
-            graph = neighbour_sets("none" if s.algorithm in ("individual", "centralized") else s.graph, self.cfg.robots,
-                                   graph_file=s.graph_file, radius=s.comm_radius_m, positions=positions)
+            graph = run_graph(s, self.cfg.robots, positions)
         except GraphError as exc:
             raise LearnerError(str(exc), 2) from None
         self.neighbours = graph[robot]
