@@ -1,7 +1,8 @@
 """The ``swarmmap`` command: one subcommand per service, plus ``status`` and ``up``.
 
     swarmmap up --preset demo            # the whole system on this machine
-    swarmmap router|world|lidar|learner|observer  # one service (what up, compose and SLURM start)
+    swarmmap router|recorder|world|lidar|learner|observer  # one service (what up, compose and SLURM start)
+    swarmmap prepare --run-dir DIR [up options]   # write DIR/config.yaml for services started by hand or SLURM
     swarmmap status --config RUN_DIR/config.yaml
     swarmmap experiment kl-sweep|regularization --out DIR   # the paper's figures
 
@@ -21,14 +22,17 @@ from swarmmap.shared.runtime import setup_logging, shutdown_event
 
 DESCRIPTIONS = {
     "up": "Run the whole system locally: router, world, a lidar streamer and a learner per robot.",
+    "prepare": "Write a run's config.yaml (what up would run) for services started one by one, e.g. by SLURM.",
     "router": "A Zenoh router for discovery across hosts and containers.",
+    "recorder": "The recorder: writes the run directory (config, metrics, summary, ground truth) and ends the run.",
     "world": "The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
     "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
     "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
     "status": "List the live services of a run and their message rates.",
 }
-SECTIONS = {"up": "up", "router": None, "world": "world", "lidar": "lidar", "learner": "learner", "observer": "observer",
+SECTIONS = {"up": "up", "prepare": "up", "router": None, "recorder": "recorder", "world": "world", "lidar": "lidar",
+            "learner": "learner", "observer": "observer",
             "status": None}
 
 
@@ -39,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, description in DESCRIPTIONS.items():
         p = sub.add_parser(name, help=description, description=description)
         add_common_arguments(p, SECTIONS[name])
-        if name == "up":
+        if name in ("up", "prepare"):
             p.add_argument("--rounds", dest="learner.rounds", default=argparse.SUPPRESS,
                            help="communication rounds per learner (learner.rounds)")
             p.add_argument("--transport", dest="learner.transport", default=argparse.SUPPRESS, metavar="{zenoh,inproc}",
@@ -68,8 +72,12 @@ def _runner(command: str) -> Callable:
     # Imported lazily: `swarmmap status --help` should not pay for torch and pybullet.
     if command == "up":
         from swarmmap.services.launcher import run
+    elif command == "prepare":
+        from swarmmap.services.launcher import run_prepare as run
     elif command == "router":
         from swarmmap.services.router import run
+    elif command == "recorder":
+        from swarmmap.services.recorder import run
     elif command == "world":
         from swarmmap.services.world import run
     elif command == "lidar":
@@ -92,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("up").setLevel(logging.WARNING)  # one line per Metrics is too much here; Progress reports
         return experiment(args)
     try:
-        cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command == "up" else None)
+        cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command in ("up", "prepare") else None)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)
         return 2

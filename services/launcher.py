@@ -1,11 +1,13 @@
 """``swarmmap up``: the whole system as local processes on loopback, and its run directory.
 
-Starts a router on a free port, the Rerun observer (unless ``up.observer`` is off), then N
-learners and N lidar streamers (each its own OS process, all Zenoh peers connected to the
-router, multicast scouting off), waits until they are alive, then starts the world. It
-records every learner's ``Metrics`` into ``RUN_DIR/metrics.csv`` as they arrive, and when
-every learner has finished (or on Ctrl-C, or when a service fails) stops the rest and writes
-``RUN_DIR/summary.json``.
+Starts a router on a free port, the recorder, the Rerun observer (unless ``up.observer`` is
+off), then N learners and N lidar streamers (each its own OS process, all Zenoh peers connected
+to the router, multicast scouting off), waits until they are alive, then starts the world.
+The recorder (``swarmmap recorder``, the same service compose and SLURM start) writes the run
+directory and ends the run: when every learner has finished, or one has failed, it says so on
+``run/done`` and every service exits by itself; ``up`` returns the recorder's status. A
+service that exits with an error, or Ctrl-C, stops the rest (in parallel, within
+``up.stop_grace_s``). ``up`` adds every service's pid and exit status to ``summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
@@ -16,8 +18,6 @@ Rerun recording and its time per map).
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import os
@@ -29,20 +29,18 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
+from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, ZenohSettings
+from swarmmap.shared.config import RunConfig
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.plans import plan_reference
-from swarmmap.shared.protocol import Keys, Metrics, WorldMap
+from swarmmap.shared.protocol import Keys, Metrics
 from swarmmap.shared.recording import RecordingError, read_recording
 
 log = logging.getLogger("up")
 
-METRICS_COLUMNS = ["robot", "round", "wall_time_s", "val_bce", "consensus_error", "bytes_sent", "bytes_received",
-                   "compute_s", "wait_s", "send_s", "n_points", "final"]
+# How long after a service failed the recorder gets to end the run by itself (run/done).
+FAILURE_GRACE_S = 15.0
 
 
 def free_port() -> int:
@@ -50,6 +48,33 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def prepare(cfg: RunConfig) -> RunConfig:
+    """The run's resolved config, as every launcher writes it to ``RUN_DIR/config.yaml``: a run id
+    and run directory, the recordings to replay or record, and an observer that the world waits
+    for and that saves ``RUN_DIR/recording.rrd``."""
+    run_id = cfg.run_id if cfg.run_id != "default" else time.strftime("run-%Y%m%d-%H%M%S")
+    run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
+    cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir})
+    if cfg.up.replay is not None:
+        cfg = replay_config(cfg, cfg.up.replay)
+    if cfg.up.record is not None:
+        record = str(cfg.up.record.resolve() / "robot-{robot}.swrec")
+        cfg = cfg.model_copy(update={"lidar": cfg.lidar.model_copy(update={"record": record})})
+    if cfg.up.observer:
+        obs = cfg.observer.model_copy(update={"save": cfg.observer.save or run_dir / "recording.rrd",
+                                              "spawn": cfg.observer.spawn or cfg.up.viewer})
+        wait_for = cfg.world.wait_for + ([] if "observer" in cfg.world.wait_for else ["observer"])
+        cfg = cfg.model_copy(update={"observer": obs, "world": cfg.world.model_copy(update={"wait_for": wait_for})})
+    return cfg
+
+
+def write_config(cfg: RunConfig) -> Path:
+    """Write ``RUN_DIR/config.yaml``; returns its path."""
+    path = cfg.run_dir / "config.yaml"
+    atomic_write_text(path, cfg.dump_yaml())
+    return path
 
 
 @dataclass
@@ -66,70 +91,26 @@ class Child:
         return f"{self.service}-{self.ident}"
 
 
-class MetricsRecorder:
-    """Appends every Metrics message to metrics.csv and keeps the first and last per robot."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self._lock = threading.Lock()
-        resuming = path.exists() and path.stat().st_size > 0  # a resumed run keeps the rows it had
-        self._file = path.open("a" if resuming else "w", newline="")
-        self._csv = csv.writer(self._file)
-        if not resuming:
-            self._csv.writerow(METRICS_COLUMNS)
-        self._file.flush()
-        self.first: dict[int, Metrics] = {}
-        self.final: dict[int, Metrics] = {}
-        self.latest: dict[int, Metrics] = {}
-
-    def add(self, m: Metrics) -> None:
-        with self._lock:
-            self._csv.writerow([m.sender, m.round, f"{m.wall_time_s:.3f}", f"{m.val_bce:.6f}",
-                                f"{m.consensus_error:.6f}", m.bytes_sent, m.bytes_received, f"{m.compute_s:.3f}",
-                                f"{m.wait_s:.3f}", f"{m.send_s:.3f}", m.n_points, int(m.final)])
-            self._file.flush()
-            self.first.setdefault(m.sender, m)
-            self.latest[m.sender] = m
-            if m.final:
-                self.final[m.sender] = m
-
-    def close(self) -> None:
-        with self._lock:
-            self._file.close()
-
-
 class Launcher:
     """Starts, watches and stops the services of one run."""
 
     def __init__(self, cfg: RunConfig, stop: threading.Event):
         self.stop = stop
-        run_id = cfg.run_id if cfg.run_id != "default" else time.strftime("run-%Y%m%d-%H%M%S")
-        run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
         self.router_endpoint = f"tcp/127.0.0.1:{free_port()}"
-        zenoh = ZenohSettings(mode="peer", connect=[self.router_endpoint], listen=["tcp/127.0.0.1:0"],
-                              multicast_scouting=False)
-        cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir, "zenoh": zenoh})
-        if cfg.up.replay is not None:
-            cfg = replay_config(cfg, cfg.up.replay)
-        if cfg.up.record is not None:
-            record = str(cfg.up.record.resolve() / "robot-{robot}.swrec")
-            cfg = cfg.model_copy(update={"lidar": cfg.lidar.model_copy(update={"record": record})})
-        if cfg.up.observer:
-            obs = cfg.observer.model_copy(update={"save": cfg.observer.save or run_dir / "recording.rrd",
-                                                  "spawn": cfg.observer.spawn or cfg.up.viewer})
-            cfg = cfg.model_copy(update={"observer": obs})
-        self.cfg = cfg
-        self.run_dir = run_dir
-        self.keys = Keys(self.cfg.key_prefix, run_id)
+        zenoh = cfg.zenoh.model_copy(update={"mode": "peer", "connect": [self.router_endpoint],
+                                             "listen": ["tcp/127.0.0.1:0"], "multicast_scouting": False})
+        self.cfg = prepare(cfg.model_copy(update={"zenoh": zenoh}))
+        self.run_dir = self.cfg.run_dir
+        self.keys = Keys(self.cfg.key_prefix, self.cfg.run_id)
         self.children: list[Child] = []
-        self.config_path = run_dir / "config.yaml"
+        self.config_path = self.run_dir / "config.yaml"
 
     def spawn(self, service: str, ident: int, *extra: str) -> Child:
         """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/."""
         log_path = self.run_dir / "logs" / f"{service}-{ident}.log"
         cmd = [sys.executable, "-m", "swarmmap.services.cli", service, "--config", str(self.config_path), *extra]
         # The config file already holds the resolved environment; children must not re-read it.
-        env = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_")}
+        env = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_") and k != "SLURM_PROCID"}
         env["PYTHONUNBUFFERED"] = "1"
         with log_path.open("w") as out:
             proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
@@ -138,11 +119,8 @@ class Launcher:
         return child
 
     def failed(self) -> Child | None:
-        for c in self.children:
-            code = c.proc.poll()
-            if code is not None and (code != 0 or c.service != "learner"):
-                return c
-        return None
+        """A service that exited with an error."""
+        return next((c for c in self.children if c.proc.poll() not in (None, 0)), None)
 
     def wait_alive(self, bus: Bus, service: str, idents: set[str]) -> None:
         deadline = time.monotonic() + self.cfg.up.start_timeout_s
@@ -157,15 +135,29 @@ class Launcher:
                 raise RuntimeError(f"{service} {sorted(missing)} not alive after {self.cfg.up.start_timeout_s:.0f} s")
             self.stop.wait(0.1)
 
+    def let_leave(self) -> None:
+        """Wait until every service but the router has exited by itself, at most its grace time."""
+        start = time.monotonic()
+        for c in self.children:
+            grace = self.cfg.up.observer_grace_s if c.service == "observer" else self.cfg.up.stop_grace_s
+            if c.service != "router":
+                try:
+                    c.proc.wait(max(0.0, start + grace - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass
+
     def shutdown(self) -> None:
-        """SIGTERM every child (world and streamers first, router last), SIGKILL after the grace time."""
-        order = {"world": 0, "lidar": 1, "learner": 2, "observer": 3, "router": 4}
-        for c in sorted(self.children, key=lambda c: order[c.service]):
-            if c.proc.poll() is None:
+        """SIGTERM every service still running, all at once (the router last, as the others may
+        still talk through it); SIGKILL what has not stopped within its grace time."""
+        for group in ([c for c in self.children if c.service != "router"], [c for c in self.children if c.service == "router"]):
+            running = [c for c in group if c.proc.poll() is None]
+            for c in running:
                 c.proc.terminate()
+            start = time.monotonic()
+            for c in running:
                 grace = self.cfg.up.observer_grace_s if c.service == "observer" else self.cfg.up.stop_grace_s
                 try:
-                    c.proc.wait(grace)
+                    c.proc.wait(max(0.0, start + grace - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     log.warning("%s did not stop within %.0f s; killing it", c.name, grace)
                     c.proc.kill()
@@ -173,20 +165,19 @@ class Launcher:
 
     def run(self) -> int:
         cfg = self.cfg
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        (self.run_dir / "logs").mkdir(exist_ok=True)
-        atomic_write_text(self.config_path, cfg.dump_yaml())
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        write_config(cfg)
         log.info("run %s: %d robots, %d rounds -> %s", cfg.run_id, cfg.robots, cfg.learner.rounds, self.run_dir)
         t0 = time.monotonic()
-        recorder = MetricsRecorder(self.run_dir / "metrics.csv")
         status = 1
         try:
             self.spawn("router", 0, "--zenoh-mode", "router", "--zenoh-listen", self.router_endpoint,
                        "--set", "zenoh.connect=[]")
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
-                bus.subscribe(self.keys.metrics("*"), Metrics, lambda m: self.on_metrics(recorder, m))
+                bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics)
                 self.wait_alive(bus, "router", {"0"})
-                if cfg.up.observer:  # first, so that it sees the run from the start
+                recorder = self.spawn("recorder", 0)  # first, so that it records the run from the start
+                if cfg.up.observer:
                     self.spawn("observer", 0)
                 ids = {str(i) for i in range(cfg.robots)}
                 if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
@@ -195,79 +186,65 @@ class Launcher:
                     if cfg.learner.transport == "zenoh":
                         self.spawn("learner", i, "--robot", str(i))
                     self.spawn("lidar", i, "--robot", str(i))
+                self.wait_alive(bus, "recorder", {"0"})
                 self.wait_alive(bus, "learner", ids)
                 self.wait_alive(bus, "lidar", ids)
                 self.spawn("world", 0)
-                self.wait_alive(bus, "world", {"0"})
-                world = bus.query(self.keys.world_map(), WorldMap, timeout=30.0, stop=self.stop)
-                if world is not None:
-                    save_ground_truth(self.run_dir, world)
                 status = self.watch(recorder)
+            if status != 130:  # the run is over: the services leave by themselves (run/done)
+                self.let_leave()
         except RuntimeError as exc:
             log.error("%s", exc)
             status = 1
         finally:
             self.shutdown()
-            recorder.close()
-            self.write_summary(recorder, time.monotonic() - t0)
+            self.complete_summary(time.monotonic() - t0, status)
         return status
 
-    def on_metrics(self, recorder: MetricsRecorder, m: Metrics) -> None:
-        recorder.add(m)
+    def on_metrics(self, m: Metrics) -> None:
         log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
                  m.consensus_error, "  (final)" if m.final else "")
 
-    def watch(self, recorder: MetricsRecorder) -> int:
-        """Wait until every learner has exited; 0 if all finished cleanly."""
-        learners = [c for c in self.children if c.service == "learner"]
+    def watch(self, recorder: Child) -> int:
+        """Wait until the recorder says the run is over (it exits 0 or 1). A service that fails
+        gives the recorder FAILURE_GRACE_S to end the run (``run/done``) before ``up`` stops it."""
+        failed_at = None
         while not self.stop.is_set():
-            if (bad := self.failed()) is not None:
-                log.error("%s exited with status %s; stopping the run. Its log (%s) ends:\n%s",
+            code = recorder.proc.poll()
+            if code is not None:
+                if code == 0:
+                    log.info("the run is over: every learner finished")
+                else:
+                    log.error("the run failed (recorder status %d); see %s", code, self.run_dir / "summary.json")
+                return 0 if code == 0 else 1
+            if failed_at is None and (bad := self.failed()) is not None:
+                log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
+                failed_at = time.monotonic()
+            if failed_at is not None and time.monotonic() - failed_at > FAILURE_GRACE_S:
                 return 1
-            if all(c.proc.poll() is not None for c in learners):
-                missing = sorted(set(range(self.cfg.robots)) - recorder.final.keys())
-                if missing:
-                    log.error("learners %s exited without final metrics", missing)
-                    return 1
-                log.info("all %d learners finished", len(learners))
-                return 0
             self.stop.wait(0.2)
         log.info("interrupted; stopping every service")
         return 130
 
-    def write_summary(self, recorder: MetricsRecorder, wall: float) -> None:
-        robots = {}
+    def complete_summary(self, wall: float, status: int) -> None:
+        """Add every service's pid and exit status to the recorder's ``summary.json``."""
+        path = self.run_dir / "summary.json"
+        try:
+            summary = json.loads(path.read_text())
+        except (OSError, ValueError):  # the recorder never got to write it
+            summary = {"run_id": self.cfg.run_id, "robots": self.cfg.robots, "ok": False,
+                       "reason": "the recorder wrote no summary", "learners": {}}
         learners = {c.ident: c for c in self.children if c.service == "learner"}
-        for robot in range(self.cfg.robots):
-            c = learners.get(robot) or learners.get(0)  # in-process: learner-0 serves every robot
-            if c is None:
-                continue
-            first, last = recorder.first.get(robot), recorder.final.get(robot) or recorder.latest.get(robot)
-            robots[str(robot)] = {
-                "pid": c.proc.pid,
-                "exit_code": c.proc.returncode,
-                "finished": robot in recorder.final,
-                "rounds": last.round if last else 0,
-                "first_val_bce": first.val_bce if first else None,
-                "final_val_bce": last.val_bce if last else None,
-                "wall_time_s": last.wall_time_s if last else None,
-                "reported_pid": last.pid if last else None,
-                "bytes_sent": last.bytes_sent if last else None,
-                "bytes_received": last.bytes_received if last else None,
-            }
-        summary = {
-            "run_id": self.cfg.run_id,
-            "preset": self.cfg.preset,
-            "robots": self.cfg.robots,
-            "rounds": self.cfg.learner.rounds,
-            "transport": self.cfg.learner.transport,
-            "wall_time_s": round(wall, 3),
-            "services": {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode} for c in self.children},
-            "learners": robots,
-        }
-        atomic_write_text(self.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
-        log.info("summary: %s", self.run_dir / "summary.json")
+        for robot, entry in summary.get("learners", {}).items():
+            c = learners.get(int(robot)) or learners.get(0)  # in-process: learner-0 serves every robot
+            if c is not None:
+                entry.update(pid=c.proc.pid, exit_code=c.proc.returncode)
+        summary["status"] = status
+        summary["wall_time_s"] = round(wall, 3)
+        summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode} for c in self.children}
+        atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
+        log.info("summary: %s", path)
 
 
 def replay_config(cfg: RunConfig, folder: Path) -> RunConfig:
@@ -293,21 +270,23 @@ def replay_config(cfg: RunConfig, folder: Path) -> RunConfig:
     return cfg.model_copy(update={"robots": len(recs), "seed": recorded.seed, "world": world, "lidar": lidar})
 
 
-def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
-    """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
-    save_png(run_dir / "groundtruth.png", world.grid.numpy().astype(float))
-    buf = io.BytesIO()
-    np.savez_compressed(buf, grid=world.grid.numpy(), resolution=world.resolution, origin=np.asarray(world.origin),
-                        val_points=world.val_points.numpy(), val_labels=world.val_labels.numpy())
-    atomic_write_bytes(run_dir / "groundtruth.npz", buf.getvalue())
-
-
 def tail(path: Path, lines: int = 15) -> str:
     """The last lines of a log file."""
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
     except OSError:
         return "(no log)"
+
+
+def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
+    """``swarmmap prepare``: write the run's config.yaml and print its path."""
+    try:
+        cfg = prepare(cfg)
+    except (RecordingError, PlanError) as exc:
+        log.error("%s", exc)
+        return 2
+    print(write_config(cfg))
+    return 0
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:

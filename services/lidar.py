@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, fail
+from swarmmap.shared.config import RunConfig, fail, task_robot
 from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.protocol import Keys, ProtocolError, Samples, Scan, Tensor, decode, encode
 from swarmmap.shared.recording import RecordingError, RecordingWriter, read_recording
@@ -58,9 +58,7 @@ def robot_file(template: str, robot: int) -> str:
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """The streamer's main loop; returns the process exit status."""
-    robot = cfg.lidar.robot
-    if robot is None or robot >= cfg.robots:
-        fail(f"config error:\n  lidar.robot: required, one of 0..{cfg.robots - 1} (got {robot!r})")
+    robot = task_robot(cfg.lidar.robot, cfg.robots, "lidar.robot")
     if cfg.lidar.record and cfg.lidar.replay:
         fail("config error:\n  lidar.record, lidar.replay: choose one")
     if cfg.lidar.replay:
@@ -77,6 +75,7 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
         recorder = RecordingWriter(robot_file(cfg.lidar.record, robot), robot, cfg.model_dump(mode="json"),
                                    plan_reference(cfg.world.floorplan))
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
+        bus.end_with_run(stop)
         out = bus.publisher(keys.samples(robot))
         bus.subscribe(keys.scan(robot), Scan, inbox.put)
         bus.announce()
@@ -126,6 +125,7 @@ def replay(cfg: RunConfig, robot: int, path: str, stop: threading.Event) -> int:
         messages.append((t, msg.model_copy(update={"run": cfg.run_id, "last": last})))
     keys = Keys(cfg.key_prefix, cfg.run_id)
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
+        bus.end_with_run(stop)
         out = bus.publisher(keys.samples(robot))
         bus.announce()
         if bus.wait_alive("learner", {str(robot)}, cfg.world.wait_for_consumers_s, stop):

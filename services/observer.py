@@ -46,6 +46,7 @@ from swarmmap.shared.models import model_from_settings, param_count, pick_device
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
+FINAL_STATES_WAIT_S = 10.0  # once the run is over, how long the learners' final States may take to arrive
 
 ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
                           [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8)
@@ -249,6 +250,13 @@ class Observer:
                 continue
             log.debug("robot %d round %d mapped in %.3f s", robot, msg.round, self.map_times[-1])
 
+    def has_final_states(self) -> bool:
+        """Whether every learner's final State has arrived (mapped or waiting to be)."""
+        last = self.cfg.learner.rounds
+        with self.lock:
+            got = {r for r, k in self.mapped_round.items() if k >= last} | {r for r, m in self.newest.items() if m.round >= last}
+        return got >= set(range(self.cfg.robots))
+
     def report(self) -> dict:
         t = np.array(self.map_times) if self.map_times else np.zeros(1)
         return {"maps": len(self.map_times), "states_received": self.states_in, "states_skipped": self.skipped,
@@ -267,8 +275,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     sinks = open_sinks(cfg, rec, bp)
     log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
     obs = Observer(cfg, rec, device)
-    worker = threading.Thread(target=obs.map_loop, args=(stop,), name="maps")
+    mapping_done = threading.Event()
+    worker = threading.Thread(target=obs.map_loop, args=(mapping_done,), name="maps")
     with Bus.open(cfg.zenoh, keys, "observer", 0) as bus:
+        bus.end_with_run(stop)
         world = bus.query(keys.world_map(), WorldMap, timeout=cfg.learner.collect_timeout_s, stop=stop)
         if world is None:
             if stop.is_set():
@@ -282,6 +292,11 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         bus.announce(0)
         worker.start()
         stop.wait()
+        if bus.run_done is not None and bus.run_done.ok:  # the final States may still be on their way
+            deadline = time.monotonic() + FINAL_STATES_WAIT_S
+            while not obs.has_final_states() and time.monotonic() < deadline:
+                time.sleep(0.1)
+    mapping_done.set()
     worker.join()  # maps the States still waiting (the final ones) before the recording closes
     rec.flush()
     rep = obs.report()

@@ -3,9 +3,11 @@
 Run-book: ``swarmmap world --config RUN_DIR/config.yaml`` (``swarmmap up`` starts it last).
 It builds the plan (``world.floorplan``: procedural, a CubiCasa5K SVG or a DiNNO PNG), its
 ground-truth grid and validation set, serves them on ``world/map``,
-waits until every lidar streamer and learner of the run is alive, then drives the robots and
+waits until the services of ``world.wait_for`` are alive (every lidar streamer and learner,
+the recorder, and the observer when one records the run), then drives the robots and
 publishes one ``Scan`` per robot per LiDAR period on ``robots/<id>/scan`` (the robot's final
-scan has ``last`` set). Afterwards it keeps serving the map until stopped.
+scan has ``last`` set). Afterwards it keeps serving the map until the run is over
+(``run/done``) or it is stopped.
 ``swarmmap world --floorplan F --export DIR`` writes DIR/plan.stl, occupancy.png and
 occupancy.npz and exits.
 """
@@ -189,6 +191,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     try:
         keys = Keys(cfg.key_prefix, cfg.run_id)
         with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
+            bus.end_with_run(stop)
             bus.serve(keys.world_map(), lambda: map_payload)
             pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
             bus.announce()
@@ -196,9 +199,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 log.info("serving the map only (world.drive is off)")
                 stop.wait()
                 return 0
-            wanted = {str(i) for i in range(cfg.robots)}
-            for service in ("lidar", "learner"):
-                missing = bus.wait_alive(service, wanted, w.wait_for_consumers_s, stop)
+            deadline = time.monotonic() + w.wait_for_consumers_s
+            for service in w.wait_for:
+                wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner") else {"0"}
+                missing = bus.wait_alive(service, wanted, max(0.0, deadline - time.monotonic()), stop)
                 if stop.is_set():
                     return 0
                 if missing:

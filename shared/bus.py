@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 import zenoh
 
 from swarmmap.shared.config import ConfigError, ZenohSettings
-from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, decode, encode
+from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, decode, encode
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -101,6 +101,7 @@ class Bus:
         self._logged: set[tuple[str, str]] = set()
         self._handles: list[Any] = []
         self._tokens: dict[str, Any] = {}
+        self.run_done: RunDone | None = None
 
     @classmethod
     def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0) -> Bus:
@@ -159,6 +160,18 @@ class Bus:
             if not missing or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
                 return missing
             time.sleep(0.1) if stop is None else stop.wait(0.1)
+
+    def end_with_run(self, stop: threading.Event) -> None:
+        """Set ``stop`` when the run's recorder says the run is over (``RunDone``, kept in
+        ``self.run_done``): every service ends by itself, whoever launched it."""
+
+        def on_done(msg: RunDone) -> None:
+            if self.run_done is None:
+                log.info("the run is over (%s): %s", "ok" if msg.ok else "failed", msg.reason)
+            self.run_done = msg
+            stop.set()
+
+        self.subscribe(self.keys.run_done(), RunDone, on_done, sender_from_key=False)
 
     # -- data
 

@@ -89,7 +89,11 @@ class WorldSettings(Section):
         "robot", description="one rayTestBatch per robot, or one for all robots' rays (bench/lidar_rays.py: per robot is faster here)")
     val_scans: int = Field(300, ge=1, description="validation scans from random free poses")
     val_beams: int = Field(60, ge=1, description="beams per validation scan")
-    wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for every lidar and learner to be alive before driving")
+    wait_for: list[Literal["lidar", "learner", "recorder", "observer"]] = Field(
+        default_factory=lambda: ["lidar", "learner", "recorder"],
+        description="services that must be alive before the robots drive (lidar and learner: one per robot); "
+                    "add observer when one records the run, so that it sees every pose and scan")
+    wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for the services of wait_for before driving anyway")
     drive: bool = Field(True, description="drive the robots; false = only serve the map (when the streamers replay recordings)")
 
     @model_validator(mode="after")
@@ -203,6 +207,13 @@ class ObserverSettings(Section):
     device: str = Field("auto", description="torch device for map evaluation: auto (cuda when available), cpu, cuda ...")
 
 
+class RecorderSettings(Section):
+    """The recorder: writes the run directory and says when the run is over (``run/done``)."""
+
+    start_timeout_s: float = Field(600.0, gt=0, description="fail the run when a learner has not come alive after this long")
+    linger_s: float = Field(30.0, ge=0, description="once the run is over, how long to wait for the other services to leave")
+
+
 class UpSettings(Section):
     """The launcher ``swarmmap up``."""
 
@@ -240,6 +251,7 @@ class RunConfig(Section):
     lidar: LidarSettings = Field(default_factory=LidarSettings)
     learner: LearnerSettings = Field(default_factory=LearnerSettings)
     observer: ObserverSettings = Field(default_factory=ObserverSettings)
+    recorder: RecorderSettings = Field(default_factory=RecorderSettings)
     up: UpSettings = Field(default_factory=UpSettings)
 
     def dump_yaml(self) -> str:
@@ -487,6 +499,19 @@ def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = 
     for item in getattr(args, "overrides", []):
         apply_override(cli, item)
     return resolve(cli, config_file=getattr(args, "config", None), preset=preset, environ=environ)
+
+
+def task_robot(given: int | None, robots: int, field: str, environ: dict[str, str] | None = None) -> int:
+    """The robot a per-robot service serves: ``given`` (``--robot``), else its SLURM task rank
+    (``SLURM_PROCID``), so that ``srun --ntasks N swarmmap learner`` serves robots 0..N-1.
+    Stops the service with a message naming ``field`` when there is none or it is out of range."""
+    environ = os.environ if environ is None else environ
+    robot = given
+    if robot is None and environ.get("SLURM_PROCID", "").isdigit():
+        robot = int(environ["SLURM_PROCID"])
+    if robot is None or not 0 <= robot < robots:
+        fail(f"config error:\n  {field}: required (--robot, or the SLURM task rank), one of 0..{robots - 1} (got {robot!r})")
+    return robot
 
 
 def fail(message: str) -> typing.NoReturn:

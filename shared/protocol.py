@@ -59,6 +59,7 @@ class Keys:
         learners/<id>/round-complete RoundComplete learner -> neighbours (Algorithm 1)
         learners/<id>/metrics       Metrics     learner -> launcher, observer
         world/map                   WorldMap    queryable served by the world
+        run/done                    RunDone     recorder -> every service: the run is over
         alive/<service>/<id>        liveliness tokens of every service
     """
 
@@ -84,6 +85,9 @@ class Keys:
 
     def world_map(self) -> str:
         return f"{self.root}/world/map"
+
+    def run_done(self) -> str:
+        return f"{self.root}/run/done"
 
     def alive(self, service: str = "*", ident: int | str = "*") -> str:
         return f"{self.root}/alive/{service}/{ident}"
@@ -302,8 +306,18 @@ class WorldMap(Message):
         return x0, y0, x0 + w * self.resolution, y0 + h * self.resolution
 
 
+class RunDone(Message):
+    """The recorder's word that the run is over, to every service (``sender`` is 0): ``ok`` when
+    every learner finished, else ``reason`` names what failed. Services exit on it."""
+
+    KIND: ClassVar[str] = "RunDone"
+    ok: bool
+    reason: Annotated[str, Field(max_length=2000)]
+    finished: Annotated[list[RobotId], Field(max_length=10000)] = []
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.KIND: cls for cls in (Scan, Samples, State, RoundComplete, Metrics, WorldMap)
+    cls.KIND: cls for cls in (Scan, Samples, State, RoundComplete, Metrics, WorldMap, RunDone)
 }
 
 M = TypeVar("M", bound=Message)

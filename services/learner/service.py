@@ -11,7 +11,9 @@ Run-book: ``swarmmap learner --robot I --config RUN_DIR/config.yaml``. Order of 
    Algorithm 1 for ``rounds`` rounds with
    DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds and at the end;
 5. write ``RUN_DIR/models/robot-<I>.pt``, ``RUN_DIR/maps/robot-<I>-mean.png`` and its training
-   points ``RUN_DIR/data/robot-<I>.npz``.
+   points ``RUN_DIR/data/robot-<I>.npz``;
+6. stay until the recorder says the run is over (``run/done``), then exit 0. The same message
+   stops it at any point, e.g. when another learner failed.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, fail
+from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, param_count, pick_device, save_model, set_flat
 from swarmmap.shared.protocol import Keys, Metrics, Samples, State, Tensor, WorldMap
@@ -138,7 +140,10 @@ class RobotLearner:
             log.info("robot %d: resuming from %s at round %d", robot, self.checkpoint_path, self.start_round)
             return
         ready = self.collector.first if s.data == "online" else self.collector.done
-        if not (ready.wait(s.collect_timeout_s) or stop.is_set()):
+        deadline = time.monotonic() + s.collect_timeout_s
+        while not ready.is_set() and not stop.is_set() and time.monotonic() < deadline:
+            ready.wait(0.1)  # a stop (Ctrl-C, the run's end) is heard at once
+        if not (ready.is_set() or stop.is_set()):
             what = "no Samples" if s.data == "online" else "no Samples with last=true"
             raise LearnerError(f"robot {robot}: {what} on {self.bus.keys.samples(robot)} within {s.collect_timeout_s:.0f} s", 3)
         if stop.is_set():
@@ -240,16 +245,15 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     inproc = s.transport == "inproc"
     if inproc:
         robots = list(range(cfg.robots))
-    elif s.robot is None or s.robot >= cfg.robots:
-        fail(f"config error:\n  learner.robot: required, one of 0..{cfg.robots - 1} (got {s.robot!r})")
     else:
-        robots = [s.robot]
+        robots = [task_robot(s.robot, cfg.robots, "learner.robot")]
     torch.set_num_threads(s.torch_threads)
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     n_params = param_count(model_from_settings(s, (0, 0, 1, 1), cfg.seed))
     state_size = 2 * n_params if s.algorithm == "dsgt" else n_params
     with Bus.open(cfg.zenoh, keys, "learner", robots[0]) as bus:
+        bus.end_with_run(stop)
         learners = [RobotLearner(cfg, r, bus, device) for r in robots]
         for r in robots:
             bus.announce(r)
@@ -285,8 +289,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         except InterruptedError:
             log.info("robots %s: stopped", robots)
             return 0
-        # Stay until every neighbour has its final State from us (they linger likewise).
-        stop.wait(0.5)
+        # Stay until the run is over (the recorder's run/done): a launcher that stops everything
+        # once one service exits (compose's --exit-code-from) must not cut the others short.
+        # Without a recorder, stay until every neighbour has its final State from us.
+        stop.wait(s.peer_timeout_s if bus.alive("recorder") else 0.5)
     return 0
 
 
