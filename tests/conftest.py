@@ -52,3 +52,13 @@ def zenoh_pair() -> tuple[ZenohSettings, ZenohSettings]:
     a = ZenohSettings(mode="peer", listen=[endpoint], multicast_scouting=False)
     b = ZenohSettings(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], multicast_scouting=False)
     return a, b
+
+
+def recording_entities(path: Path) -> dict[str, set[str]]:
+    """Entity path -> timeline names of everything in a Rerun ``.rrd`` (read with Rerun's own reader)."""
+    from rerun.chunk import RrdReader
+
+    timelines: dict[str, set[str]] = {}
+    for chunk in RrdReader(path).stream():
+        timelines.setdefault(chunk.entity_path, set()).update(chunk.timeline_names)
+    return timelines

@@ -13,7 +13,7 @@ from rerun.chunk import RrdReader
 from swarmmap.services.observer import Observer
 from swarmmap.shared.config import resolve
 from swarmmap.shared.protocol import State, Tensor
-from tests.conftest import SWARMMAP, clean_env
+from tests.conftest import SWARMMAP, clean_env, recording_entities
 
 
 def state(robot: int, rnd: int) -> State:
@@ -55,9 +55,7 @@ def test_up_records_every_learners_mean_and_std_maps(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     reader = RrdReader(run_dir / "recording.rrd")
     assert reader.recordings() and reader.blueprints(), "no recording or no blueprint in the .rrd"
-    timelines: dict[str, set[str]] = {}
-    for chunk in reader.stream():
-        timelines.setdefault(chunk.entity_path, set()).update(chunk.timeline_names)
+    timelines = recording_entities(run_dir / "recording.rrd")
     for robot in (0, 1):
         for entity in (f"/maps/mean/robot-{robot}", f"/maps/std/robot-{robot}", f"/curves/val_bce/robot-{robot}",
                        f"/world/robots/{robot}/pose"):

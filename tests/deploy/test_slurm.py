@@ -1,0 +1,103 @@
+"""The SLURM job scripts on a real (one-node) cluster: ``team.sbatch`` runs one task per service
+and ends COMPLETED with a whole run directory; a killed learner task ends it FAILED within a
+minute, naming the learner; ``swarmmap-up.sbatch`` runs ``swarmmap up`` as one task."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO, recording_entities, wait_until
+from tests.deploy.conftest import VENV_BIN
+
+pytestmark = pytest.mark.deploy
+
+
+def sbatch(script: str, tmp_path: Path, *args: str, wait: bool = True) -> tuple[str, subprocess.CompletedProcess]:
+    """Submit ``deploy/slurm/<script>`` with this interpreter's ``swarmmap`` on PATH; the job id and sbatch's result."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SWARMMAP_", "SLURM_"))}
+    env |= {"PATH": f"{VENV_BIN}:{env['PATH']}", "SWARMMAP_RUN_DIR": str(tmp_path / "run")}
+    cmd = ["sbatch", "--parsable", f"--chdir={tmp_path}", f"--output={tmp_path}/job-%j.out", *(["--wait"] if wait else []),
+           str(REPO / "deploy" / "slurm" / script), *args]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+    job = proc.stdout.strip().split(";")[0]
+    assert job.isdigit(), proc.stdout + proc.stderr
+    return job, proc
+
+
+def job_state(job: str) -> str:
+    out = subprocess.run(["scontrol", "show", "job", job], capture_output=True, text=True, timeout=30).stdout
+    return re.search(r"JobState=(\w+)", out).group(1)
+
+
+def job_output(tmp_path: Path, job: str) -> str:
+    return (tmp_path / f"job-{job}.out").read_text()
+
+
+def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path):
+    job, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3")
+    out = job_output(tmp_path, job)
+    assert proc.returncode == 0 and job_state(job) == "COMPLETED", out
+    assert "run succeeded: all 3 learners finished" in out
+    run_dir = tmp_path / "run"
+    logs = sorted(p.stem for p in (run_dir / "logs").glob("*.log"))
+    # One log per SLURM task (srun --output .../<service>-%t.log): a task per service.
+    assert logs == ["learner-0", "learner-1", "learner-2", "lidar-0", "lidar-1", "lidar-2", "observer-0", "recorder-0",
+                    "router-0", "world-0"]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and summary["run_id"] == f"slurm-{job}"
+    learners = summary["learners"].values()
+    assert all(v["finished"] and v["rounds"] == 60 for v in learners)
+    assert len({v["reported_pid"] for v in learners}) == 3
+    for name in ("config.yaml", "metrics.csv", "groundtruth.npz", "observer.json", "recording.rrd"):
+        assert (run_dir / name).stat().st_size > 0, name
+    entities = recording_entities(run_dir / "recording.rrd")
+    assert all(f"/world/robots/{r}/pose" in entities and f"/maps/mean/robot-{r}" in entities for r in range(3))
+
+
+def learner_pid(run_dir: Path, robot: int) -> int | None:
+    """The pid of the learner task of ``robot`` (its SLURM_PROCID) of the run in ``run_dir``."""
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+            env = (proc / "environ").read_bytes().split(b"\0")
+        except (OSError, PermissionError):
+            continue
+        if b"learner" in cmd and any(str(run_dir).encode() in c for c in cmd) and f"SLURM_PROCID={robot}".encode() in env:
+            return int(proc.name)
+    return None
+
+
+def test_killing_a_learner_task_fails_the_job_within_a_minute_naming_it(slurm_cluster, tmp_path):
+    job, _ = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", "--rounds", "100000", wait=False)
+    try:
+        recorder_log = tmp_path / "run" / "logs" / "recorder-0.log"
+        assert wait_until(lambda: recorder_log.exists() and "round   10" in recorder_log.read_text(), 300, 0.5), \
+            job_output(tmp_path, job)
+        pid = learner_pid(tmp_path / "run", 1)
+        assert pid is not None, "no learner task with SLURM_PROCID=1"
+        os.kill(pid, signal.SIGKILL)
+        killed = time.monotonic()
+        assert wait_until(lambda: job_state(job) not in ("RUNNING", "COMPLETING", "PENDING"), 60, 0.5)
+        assert time.monotonic() - killed < 60
+    finally:
+        subprocess.run(["scancel", job], capture_output=True, timeout=30)
+    assert job_state(job) == "FAILED"
+    out = job_output(tmp_path, job)
+    assert "run FAILED: learner 1 left before finishing" in out, out
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert not summary["ok"] and "learner 1" in summary["reason"]
+
+
+def test_single_node_up_job_completes(slurm_cluster, tmp_path):
+    job, proc = sbatch("swarmmap-up.sbatch", tmp_path, "--preset", "smoke", "--robots", "2", "--rounds", "10")
+    assert proc.returncode == 0 and job_state(job) == "COMPLETED", job_output(tmp_path, job)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["ok"] and summary["status"] == 0

@@ -1,0 +1,78 @@
+"""The recorder's rules for when a run is over and how it ended, and its metrics file."""
+
+from __future__ import annotations
+
+import csv
+
+from swarmmap.services.recorder import MetricsRecorder, RunTracker
+from swarmmap.shared.protocol import Metrics
+
+
+def metrics(robot: int, rnd: int, final: bool = False) -> Metrics:
+    return Metrics(run="r", sender=robot, round=rnd, wall_time_s=1.0, val_bce=0.5, consensus_error=0.1,
+                   bytes_sent=1, bytes_received=1, final=final)
+
+
+def test_the_run_succeeds_once_every_learner_sent_its_final_metrics():
+    t = RunTracker(3)
+    for i in range(3):
+        t.on_alive("learner", str(i), True)
+        t.on_metrics(metrics(i, 0))
+    t.on_metrics(metrics(0, 10, final=True))
+    t.on_metrics(metrics(1, 10, final=True))
+    assert t.outcome() is None
+    t.on_metrics(metrics(2, 10, final=True))
+    assert t.outcome() == (True, "all 3 learners finished")
+    t.on_alive("learner", "1", False)  # leaving after the end is no failure
+    assert t.outcome()[0]
+
+
+def test_a_learner_that_leaves_before_finishing_fails_the_run_and_is_named():
+    t = RunTracker(3)
+    for i in range(3):
+        t.on_alive("learner", str(i), True)
+    t.on_metrics(metrics(0, 10, final=True))
+    t.on_alive("learner", "0", False)  # finished, then left: fine
+    assert t.outcome() is None
+    t.on_alive("learner", "2", False)
+    ok, reason = t.outcome()
+    assert not ok and "learner 2" in reason
+    t.on_alive("learner", "1", False)  # the first failure is the one reported
+    assert "learner 2" in t.outcome()[1]
+
+
+def test_streamers_and_the_world_are_needed_only_until_the_learners_have_their_data():
+    t = RunTracker(2)
+    for svc, i in (("lidar", 0), ("lidar", 1), ("world", 0), ("learner", 0), ("learner", 1)):
+        t.on_alive(svc, str(i), True)
+    t.on_metrics(metrics(0, 0))
+    t.on_alive("lidar", "0", False)  # learner 0 already trains
+    assert t.outcome() is None
+    t.on_alive("lidar", "1", False)
+    ok, reason = t.outcome()
+    assert not ok and "lidar 1" in reason
+
+    t = RunTracker(1)
+    t.on_alive("world", "0", True)
+    t.on_alive("world", "0", False)
+    assert "world" in t.outcome()[1]
+
+
+def test_tokens_never_seen_and_foreign_ids_are_ignored():
+    t = RunTracker(2)
+    t.on_alive("learner", "1", False)  # a delete without a put (e.g. history) says nothing
+    t.on_alive("learner", "x", True)
+    assert t.outcome() is None and t.learners_missing() == [0, 1]
+
+
+def test_metrics_file_is_appended_on_resume(tmp_path):
+    path = tmp_path / "metrics.csv"
+    rec = MetricsRecorder(path)
+    rec.add(metrics(0, 0))
+    rec.close()
+    rec = MetricsRecorder(path)
+    rec.add(metrics(0, 5, final=True))
+    rec.close()
+    rows = list(csv.DictReader(path.open()))
+    assert [(r["round"], r["final"]) for r in rows] == [("0", "0"), ("5", "1")]
+    assert rec.first[0].round == 5 and rec.final[0].round == 5
