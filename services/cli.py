@@ -23,6 +23,7 @@ from swarmmap.shared.runtime import setup_logging, shutdown_event
 DESCRIPTIONS = {
     "up": "Run the whole system locally: router, world, a lidar streamer and a learner per robot.",
     "prepare": "Write a run's config.yaml (what up would run) for services started one by one, e.g. by SLURM.",
+    "secrets": "Write a run's credentials: a CA, a certificate per service and the router's access policy.",
     "router": "A Zenoh router for discovery across hosts and containers.",
     "recorder": "The recorder: writes the run directory (config, metrics, summary, ground truth) and ends the run.",
     "world": "The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
@@ -31,7 +32,7 @@ DESCRIPTIONS = {
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
     "status": "List the live services of a run and their message rates.",
 }
-SECTIONS = {"up": "up", "prepare": "up", "router": None, "recorder": "recorder", "world": "world", "lidar": "lidar",
+SECTIONS = {"up": "up", "prepare": "up", "secrets": None, "router": None, "recorder": "recorder", "world": "world", "lidar": "lidar",
             "learner": "learner", "observer": "observer",
             "status": None}
 
@@ -58,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
                            help="procedural, a CubiCasa5K model.svg or a DiNNO .png (world.floorplan)")
             p.add_argument("--waypoints", dest="world.waypoints", default=argparse.SUPPRESS,
                            help="folder of .npy waypoint paths, one per robot (world.waypoints)")
+            p.add_argument("--insecure", dest="zenoh.insecure", action="store_const", const=True, default=argparse.SUPPRESS,
+                           help="no TLS, authentication or access control (zenoh.insecure; warns)")
             p.add_argument("--replay-speed", dest="lidar.replay_speed", default=argparse.SUPPRESS,
                            help="with --replay: multiple of the recorded rate, 0 = as fast as the learners take it")
         if name == "status":
@@ -74,6 +77,8 @@ def _runner(command: str) -> Callable:
         from swarmmap.services.launcher import run
     elif command == "prepare":
         from swarmmap.services.launcher import run_prepare as run
+    elif command == "secrets":
+        from swarmmap.services.launcher import run_secrets as run
     elif command == "router":
         from swarmmap.services.router import run
     elif command == "recorder":

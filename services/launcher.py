@@ -31,11 +31,12 @@ from pathlib import Path
 
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig
+from swarmmap.shared.config import RunConfig, fail
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.protocol import Keys, Metrics
 from swarmmap.shared.recording import RecordingError, read_recording
+from swarmmap.shared.secrets import access_policy, write_secrets
 
 log = logging.getLogger("up")
 
@@ -56,7 +57,9 @@ def prepare(cfg: RunConfig) -> RunConfig:
     for and that saves ``RUN_DIR/recording.rrd``."""
     run_id = cfg.run_id if cfg.run_id != "default" else time.strftime("run-%Y%m%d-%H%M%S")
     run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
-    cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir})
+    secrets = None if cfg.zenoh.insecure else (cfg.zenoh.secrets or run_dir / "secrets").resolve()
+    cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir,
+                                 "zenoh": cfg.zenoh.model_copy(update={"secrets": secrets})})
     if cfg.up.replay is not None:
         cfg = replay_config(cfg, cfg.up.replay)
     if cfg.up.record is not None:
@@ -71,10 +74,31 @@ def prepare(cfg: RunConfig) -> RunConfig:
 
 
 def write_config(cfg: RunConfig) -> Path:
-    """Write ``RUN_DIR/config.yaml``; returns its path."""
+    """Write ``RUN_DIR/config.yaml`` and, unless the run is insecure, the run's credentials;
+    returns the config's path."""
     path = cfg.run_dir / "config.yaml"
     atomic_write_text(path, cfg.dump_yaml())
+    write_run_secrets(cfg)
     return path
+
+
+def write_run_secrets(cfg: RunConfig) -> None:
+    """The run's CA, a certificate per service and the router's access policy in ``zenoh.secrets``."""
+    if cfg.zenoh.insecure:
+        log.warning("INSECURE run %s: no TLS, no authentication, no access control (--zenoh-insecure)", cfg.run_id)
+        return
+    policy = access_policy(Keys(cfg.key_prefix, cfg.run_id), cfg.robots, inproc_learner=cfg.learner.transport == "inproc")
+    names = write_secrets(cfg.zenoh.secrets, cfg.robots, policy)
+    log.info("credentials of run %s: a CA and %d certificates in %s (owner only)", cfg.run_id, len(names), cfg.zenoh.secrets)
+
+
+def run_secrets(cfg: RunConfig, stop: threading.Event) -> int:
+    """``swarmmap secrets``: write the run's credentials (for compose, or services started by hand)."""
+    if cfg.zenoh.secrets is None:
+        fail("config error:\n  zenoh.secrets: name the folder (--zenoh-secrets) or the run directory (--run-dir)")
+    write_run_secrets(cfg)
+    print(cfg.zenoh.secrets)
+    return 0
 
 
 @dataclass

@@ -155,6 +155,7 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "reported_pid": last.pid if last else None,
             "bytes_sent": last.bytes_sent if last else None,
             "bytes_received": last.bytes_received if last else None,
+            "refused": last.refused if last else None,
         }
     return {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.learner.rounds,
             "transport": cfg.learner.transport, "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),

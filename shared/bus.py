@@ -25,24 +25,61 @@ from typing import Any, TypeVar
 import zenoh
 
 from swarmmap.shared.config import ConfigError, ZenohSettings
+from swarmmap.shared.secrets import identity
 from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, decode, encode
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
 
-def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """A zenoh.Config from our settings: the JSON5 file first, then each field that is set."""
+def zenoh_config(settings: ZenohSettings, who: str) -> zenoh.Config:
+    """A zenoh.Config for identity ``who`` (``learner-3``): the JSON5 file first, then each field
+    that is set, then the run's security (see :func:`secure`) unless ``insecure``."""
     conf = zenoh.Config.from_file(str(settings.config_file)) if settings.config_file else zenoh.Config()
-    if settings.mode is not None:
-        conf.insert_json5("mode", json.dumps(settings.mode))
-    if settings.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
-    if settings.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    mode, connect, listen = settings.mode, settings.connect, settings.listen
+    if not settings.insecure:
+        mode, connect, listen = secure(conf, settings, who)
+    if mode is not None:
+        conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
     if settings.multicast_scouting is not None:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     return conf
+
+
+def secure(conf: zenoh.Config, settings: ZenohSettings, who: str) -> tuple[str, list[str], list[str]]:
+    """Mutual TLS with ``who``'s certificate from ``settings.secrets``; the router also enforces
+    the run's access policy. Every other session is a client of the router, so that every
+    message passes the policy. ``tcp/`` endpoints become ``tls/``. Returns mode, connect, listen."""
+    folder = settings.secrets
+    if folder is None:
+        raise ConfigError("config error:\n  zenoh.secrets: no credentials for this run. Create them with `swarmmap secrets "
+                          "--run-dir RUN_DIR` (swarmmap up does it) or opt out with --zenoh-insecure")
+    needed = [folder / "ca.pem", folder / f"{who}.pem", folder / f"{who}.key"]
+    router = settings.mode == "router"
+    if router:
+        needed.append(folder / "acl.json5")
+    missing = [str(p) for p in needed if not p.is_file()]
+    if missing:
+        raise ConfigError(f"config error:\n  zenoh.secrets: {who} has no credentials in {folder} (missing {', '.join(missing)}); "
+                          "create them with `swarmmap secrets --run-dir RUN_DIR`")
+    tls = {"root_ca_certificate": str(folder / "ca.pem"), "enable_mtls": True, "verify_name_on_connect": False,
+           "connect_private_key": str(folder / f"{who}.key"), "connect_certificate": str(folder / f"{who}.pem")}
+    if router:
+        tls |= {"listen_private_key": str(folder / f"{who}.key"), "listen_certificate": str(folder / f"{who}.pem")}
+        conf.insert_json5("access_control", (folder / "acl.json5").read_text())
+    for field, value in tls.items():
+        conf.insert_json5(f"transport/link/tls/{field}", json.dumps(value))
+    if not router:  # start in any order: wait for the router
+        conf.insert_json5("connect/timeout_ms", json.dumps({"router": -1, "peer": -1, "client": int(settings.connect_timeout_s * 1000)}))
+
+    def tls_endpoints(endpoints: list[str]) -> list[str]:
+        return ["tls/" + e[4:] if e.startswith("tcp/") else e for e in endpoints]
+
+    return ("router" if router else "client"), tls_endpoints(settings.connect), tls_endpoints(settings.listen) if router else []
 
 
 class RateCounter:
@@ -108,8 +145,12 @@ class Bus:
         """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``.
 
         A config file Zenoh cannot read or an endpoint it cannot use raises ConfigError."""
+        who = identity(service, ident)
+        if settings.insecure:
+            log.warning("INSECURE: %s opens its Zenoh session without TLS, authentication or access control; "
+                        "anyone who reaches the router can join this run and poison it", who)
         try:
-            session = zenoh.open(zenoh_config(settings))
+            session = zenoh.open(zenoh_config(settings, who))
         except zenoh.ZError as exc:
             given = settings.model_dump(exclude_defaults=True, mode="json")
             raise ConfigError(f"config error:\n  zenoh: cannot open a session with {given or 'the defaults'}: "

@@ -49,6 +49,14 @@ class ZenohSettings(Section):
         None, description="UDP multicast discovery of peers (Zenoh's default: on)")
     config_file: Path | None = Field(
         None, description="a Zenoh JSON5 config file; the fields above override it")
+    secrets: Path | None = Field(
+        None, description="folder of the run's credentials (swarmmap secrets): every link is mutual TLS and the router "
+                          "enforces the run's access policy; default RUN_DIR/secrets")
+    connect_timeout_s: float = Field(
+        60.0, gt=0, description="a client session (every service but the router, with TLS) waits this long for the router at start")
+    insecure: bool = Field(
+        False, description="no TLS, no authentication, no access control: anyone who reaches the router is a member "
+                           "(an explicit opt-out; every service warns)")
 
 
 class RouterSettings(Section):
@@ -170,6 +178,9 @@ class LearnerSettings(Section):
     map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
     collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
     peer_timeout_s: float = Field(120.0, gt=0, description="fail when no peer message arrives for this long")
+    max_state_distance: float = Field(
+        0.5, gt=0, description="refuse a neighbour's State whose parameters lie farther from this node's own than this "
+                               "multiple of their norm (and constant ones, e.g. all zero): defence against a hostile member")
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
@@ -253,6 +264,12 @@ class RunConfig(Section):
     observer: ObserverSettings = Field(default_factory=ObserverSettings)
     recorder: RecorderSettings = Field(default_factory=RecorderSettings)
     up: UpSettings = Field(default_factory=UpSettings)
+
+    @model_validator(mode="after")
+    def _secrets_in_run_dir(self) -> RunConfig:
+        if self.zenoh.secrets is None and self.run_dir is not None and not self.zenoh.insecure:
+            self.zenoh.secrets = self.run_dir / "secrets"
+        return self
 
     def dump_yaml(self) -> str:
         """The config as YAML, loadable again with ``--config``."""

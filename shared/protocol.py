@@ -265,6 +265,7 @@ class Metrics(Message):
     send_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     n_points: Annotated[int, Field(ge=0)] = 0
     pid: Annotated[int, Field(ge=0)] = 0
+    refused: Annotated[int, Field(ge=0)] = 0
     final: bool = False
 
 

@@ -47,10 +47,11 @@ def run_id() -> str:
 
 @pytest.fixture
 def zenoh_pair() -> tuple[ZenohSettings, ZenohSettings]:
-    """Settings for two peers on loopback: one listens on a free port, the other connects to it."""
+    """Settings for two peers on loopback: one listens on a free port, the other connects to it
+    (insecure: these tests are of the transport; tests/shared/test_security.py checks the secure one)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    a = ZenohSettings(mode="peer", listen=[endpoint], multicast_scouting=False)
-    b = ZenohSettings(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], multicast_scouting=False)
+    a = ZenohSettings(mode="peer", listen=[endpoint], multicast_scouting=False, insecure=True)
+    b = ZenohSettings(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], multicast_scouting=False, insecure=True)
     return a, b
 
 

@@ -15,14 +15,17 @@ vanished) or stayed silent for ``peer_timeout`` seconds while still needed stops
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
+
+log = logging.getLogger("learner")
 
 
 @dataclass(frozen=True)
@@ -53,13 +56,40 @@ class PeerFailure(RuntimeError):
 
 @dataclass
 class ExchangeStats:
-    """Time spent waiting for peers and sending, per node, accumulated over rounds."""
+    """Time spent waiting for peers and sending, per node, accumulated over rounds; States refused."""
 
     wait_s: float = 0.0
     send_s: float = 0.0
     rounds_done: int = 0
     resends: int = 0
     final_peers: dict[int, np.ndarray] = field(default_factory=dict)
+    refused: Counter[str] = field(default_factory=Counter)
+    logged: set[tuple[str, int]] = field(default_factory=set)
+
+
+# A State of a round further ahead than this cannot be needed yet (a neighbour is at most one
+# round ahead of a node it waits for); it is refused, so that memory stays bounded.
+ROUNDS_AHEAD = 2
+StateCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
+
+
+def implausible(theirs: np.ndarray, own: np.ndarray, max_distance: float) -> str | None:
+    """Why a neighbour's parameters cannot come from an honest node, or None.
+
+    Honest neighbours start from the same initialisation and consensus keeps them close, so
+    parameters that are constant (e.g. all zero) or farther from this node's own than
+    ``max_distance`` times the norm of its own are refused."""
+    if theirs.shape != own.shape:
+        return f"{theirs.size} parameters, expected {own.size}"
+    if not np.isfinite(theirs).all():
+        return "non-finite parameters"
+    if theirs.size > 1 and np.ptp(theirs) == 0:
+        return f"constant parameters ({float(theirs[0]):g} everywhere)"
+    scale = float(np.linalg.norm(own))
+    distance = float(np.linalg.norm(theirs.astype(np.float64) - own))
+    if scale > 0 and distance > max_distance * scale:
+        return f"parameters {distance / scale:.2f} x the own parameters' norm away (limit {max_distance:g})"
+    return None
 
 
 @dataclass
@@ -74,13 +104,17 @@ NodeUpdate = Callable[[int, np.ndarray, dict[int, np.ndarray]], np.ndarray]
 def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: np.ndarray,
                    node_update: NodeUpdate, transport: Transport, *, start_round: int = 0,
                    stats: ExchangeStats | None = None, stop: threading.Event | None = None,
-                   peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0) -> np.ndarray:
+                   peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0,
+                   check_state: StateCheck | None = None) -> np.ndarray:
     """Run rounds ``start_round .. max_rounds - 1``; return the final state.
 
     ``node_update(round, state, {peer: peer_state})`` is the algorithm (DiNNO's, here); it sees
     exactly the neighbours' States of ``round``. After the last round the node waits up to
     ``linger`` seconds for its neighbours' final States (kept in ``stats.final_peers``), which
     also gives its own last messages time to reach them before the caller closes the transport.
+    ``check_state(theirs, own)`` may refuse a neighbour's State (it returns why); refused States,
+    and States more than ROUNDS_AHEAD rounds ahead, are counted in ``stats.refused`` and the
+    round goes on without them.
     """
     stats = stats if stats is not None else ExchangeStats()
     buf = _Rounds()
@@ -131,10 +165,16 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         stats.wait_s += time.perf_counter() - t0
         if msg is not None:
             if msg.sender in neighbours and msg.round >= rnd:
-                if msg.kind == "state":
-                    buf.states[msg.round][msg.sender] = msg.params
-                else:
+                if msg.round > rnd + ROUNDS_AHEAD:
+                    refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
+                elif msg.kind == "complete":
                     buf.complete[msg.round].add(msg.sender)
+                elif msg.sender not in buf.states[msg.round]:  # the first State of a round counts
+                    why = check_state(msg.params, state) if check_state is not None else None
+                    if why is None:
+                        buf.states[msg.round][msg.sender] = msg.params
+                    else:
+                        refuse(stats, node_id, msg, why, "implausible")
             continue
         now = time.monotonic()
         needed = _still_needed(neighbours, buf, rnd, updated)
@@ -159,6 +199,15 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             final[msg.sender] = msg.params
     stats.final_peers = dict(final)
     return state
+
+
+def refuse(stats: ExchangeStats, node_id: int, msg: Envelope, why: str, reason: str) -> None:
+    """Count a refused State; log the first of each reason per sender."""
+    stats.refused[reason] += 1
+    if (reason, msg.sender) not in stats.logged:
+        stats.logged.add((reason, msg.sender))
+        log.warning("node %d: refused the %s of node %d for round %d: %s (further ones are only counted)", node_id,
+                    msg.kind, msg.sender, msg.round, why)
 
 
 def _still_needed(neighbours: set[int], buf: _Rounds, rnd: int, updated: bool) -> set[int]:

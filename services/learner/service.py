@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce
-from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
+from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, implausible, run_algorithm1
 from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
@@ -63,15 +63,22 @@ class Collector:
         self.labels: list[np.ndarray] = []
         self.done = threading.Event()
         self.first = threading.Event()
+        self.refused = 0  # Samples after the one marked last
         self._lock = threading.Lock()
 
     def add(self, msg: Samples) -> None:
         with self._lock:
+            if self.done.is_set():  # the traversal is over: nothing may be added to it
+                if self.refused == 0:
+                    log.warning("refused Samples of robot %d after its last one (seq %d); further ones are only counted",
+                                msg.sender, msg.seq)
+                self.refused += 1
+                return
             self.points.append(msg.points.numpy())
             self.labels.append(msg.labels.numpy())
+            if msg.last:
+                self.done.set()
         self.first.set()
-        if msg.last:
-            self.done.set()
 
     def arrays(self, last_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every point so far, or those of the ``last_scans`` most recent scans."""
@@ -189,11 +196,20 @@ class RobotLearner:
                       consensus_error=consensus_error(theta[:n], {j: p[:n] for j, p in peers.items()}),
                       bytes_sent=sent, bytes_received=received,
                       compute_s=self.compute_s, wait_s=self.stats.wait_s, send_s=self.stats.send_s,
-                      n_points=len(self.points), pid=os.getpid(), final=final)
+                      n_points=len(self.points), pid=os.getpid(), refused=self.refused(), final=final)
         self.metrics_pub.put(msg)
         if self.state_pub is not None:
             self.state_pub.put(State(run=self.cfg.run_id, sender=self.robot, round=k, params=Tensor.of(theta, "<f4")))
         return msg
+
+    def refused(self) -> int:
+        """Messages this learner refused: malformed or foreign ones (its bus), implausible or
+        far-future States, Samples after the last."""
+        return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused
+
+    def check_state(self, theirs: np.ndarray, own: np.ndarray) -> str | None:
+        n = len(self.node.params())  # DSGT's State also carries its gradient tracker: judge the parameters
+        return implausible(theirs[:n], own[:n], self.s.max_state_distance)
 
     def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         every = self.s.checkpoint_every
@@ -218,7 +234,8 @@ class RobotLearner:
             start = self.node.state() if self.start_state is None else self.start_state
             final = run_algorithm1(robot, self.neighbours, s.rounds, start, self.node_update, transport,
                                    start_round=self.start_round, stats=self.stats, stop=stop,
-                                   peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s)
+                                   peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
+                                   check_state=self.check_state)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(final[: len(self.node.params())]))

@@ -1,6 +1,7 @@
-"""``docker compose up`` on a real Docker engine: the run ends by itself with the recorder's
-status, the run directory is whole and owned by the invoking user, and the recording shows
-every robot; the image builds behind a TLS-intercepting proxy when given the site's CA."""
+"""``docker compose up`` on a real Docker engine, with the run's credentials from ``swarmmap
+secrets`` (every link mutual TLS): the run ends by itself with the recorder's status, the run
+directory is whole and owned by the invoking user, and the recording shows every robot; the
+image builds behind a TLS-intercepting proxy when given the site's CA."""
 
 from __future__ import annotations
 
@@ -28,6 +29,9 @@ def test_compose_up_returns_by_itself_with_a_whole_run_directory(docker_engine, 
     try:
         build = subprocess.run([*compose, "build"], cwd=REPO, env=env, capture_output=True, text=True, timeout=1500)
         assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+        secrets = subprocess.run([*compose, "run", "--rm", "recorder", "secrets"], cwd=REPO, env=env, capture_output=True,
+                                 text=True, timeout=300)
+        assert secrets.returncode == 0, secrets.stdout[-3000:] + secrets.stderr[-3000:]
         up = subprocess.run([*compose, "up", "--exit-code-from", "recorder"], cwd=REPO, env=env,
                             capture_output=True, text=True, timeout=900)
     finally:
@@ -42,6 +46,7 @@ def test_compose_up_returns_by_itself_with_a_whole_run_directory(docker_engine, 
     for robot in range(3):
         for name in (f"maps/robot-{robot}-mean.png", f"models/robot-{robot}.pt", f"data/robot-{robot}.npz"):
             assert (run_dir / name).exists(), name
+    assert (run_dir / "secrets" / "learner-2.pem").exists() and "INSECURE" not in up.stdout + up.stderr
     owners = {(p.stat().st_uid, p.stat().st_gid) for p in run_dir.rglob("*")}
     assert owners == {(UID, GID)}, f"files owned by {owners}"
     entities = recording_entities(run_dir / "recording.rrd")

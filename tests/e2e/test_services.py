@@ -1,5 +1,6 @@
 """End to end without a launcher: every service started on its own, as compose and SLURM start
-them (settings from the environment alone, any start order). The run ends by itself: every
+them (settings from the environment alone, credentials from `swarmmap secrets`, any start
+order). The run ends by itself: every
 service exits once the recorder says the run is over, the run directory is whole and the
 recording shows every robot; a killed learner ends the run with a failure that names it."""
 
@@ -31,6 +32,8 @@ def start_team(run_dir: Path, run_id: str, rounds: int) -> dict[str, subprocess.
         "SWARMMAP_WORLD__WAIT_FOR": "[lidar, learner, recorder, observer]",
     }
     (run_dir / "logs").mkdir(parents=True)
+    # The run's credentials first (compose and SLURM do the same): every link is then mutual TLS.
+    subprocess.run([*SWARMMAP, "secrets"], env=env, check=True, capture_output=True, timeout=60)
     commands = {"router-0": ["router", "--zenoh-mode", "router", "--zenoh-listen", f"tcp/127.0.0.1:{port}",
                              "--set", "zenoh.connect=[]"],
                 "world-0": ["world"],

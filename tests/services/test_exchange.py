@@ -138,3 +138,42 @@ def test_lost_peer_is_named():
     transport.lost_peers = lambda: {1}
     with pytest.raises(PeerFailure, match="left during round 0"):
         run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, transport, peer_timeout=30, resend_after=0.1)
+
+
+def test_implausible_states_are_named():
+    from swarmmap.services.learner.exchange import implausible
+
+    own = np.linspace(-1, 1, 100)
+    assert implausible(own + 0.01, own, 0.5) is None
+    assert "constant" in implausible(np.zeros(100), own, 0.5)
+    assert "x the own parameters' norm away" in implausible(own * 3, own, 0.5)
+    assert "parameters, expected" in implausible(np.ones(3), own, 0.5)
+    assert "non-finite" in implausible(np.full(100, np.nan), own, 0.5)
+
+
+def test_hostile_and_far_future_states_are_refused_and_the_rounds_go_on():
+    """A hostile member sends zero States for rounds 0-2 before the honest ones and States far
+    in the future: node 0 refuses them (counted), and ends exactly where the clean run ends."""
+    from swarmmap.services.learner.exchange import implausible
+
+    graph = {0: {1}, 1: {0}}
+    init = {0: np.linspace(1, 2, 8), 1: np.linspace(1, 2, 8)}
+    ref = reference(graph, 8, init)
+    hub = MemoryHub(graph)
+    for k in (0, 1, 2):
+        hub.queues[0].put(Envelope("state", 1, k, np.zeros(8)))
+    hub.queues[0].put(Envelope("state", 1, 10_000, np.ones(8)))
+    stats, results = ExchangeStats(), {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], 8, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
+                                    linger=0.5, stats=stats if i == 0 else None,
+                                    check_state=lambda theirs, own: implausible(theirs, own, 0.5))
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    np.testing.assert_array_equal(results[0], ref[0])
+    assert stats.refused["implausible"] == 3 and stats.refused["far-future"] == 1

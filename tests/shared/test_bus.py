@@ -10,8 +10,8 @@ from swarmmap.shared.protocol import Keys
 
 
 @pytest.mark.parametrize("settings, words", [
-    (dict(config_file="/nonexistent/zenoh.json5"), "No such file"),
-    (dict(listen=["tcp/203.0.113.9:7447"], multicast_scouting=False), "203.0.113.9"),
+    (dict(config_file="/nonexistent/zenoh.json5", insecure=True), "No such file"),
+    (dict(listen=["tcp/203.0.113.9:7447"], multicast_scouting=False, insecure=True), "203.0.113.9"),
 ])
 def test_bad_zenoh_settings_raise_config_error(tmp_path, settings, words):
     with pytest.raises(ConfigError) as info:
@@ -23,4 +23,4 @@ def test_corrupt_zenoh_file_is_named(tmp_path):
     bad = tmp_path / "z.json5"
     bad.write_text("{ mode: 'peer', listen: [")
     with pytest.raises(ConfigError, match="z.json5"):
-        Bus.open(ZenohSettings(config_file=bad), Keys("swarmmap", "r"), "test")
+        Bus.open(ZenohSettings(config_file=bad, insecure=True), Keys("swarmmap", "r"), "test")

@@ -1,0 +1,77 @@
+"""A `swarmmap up` run is closed to strangers and robust to a hostile member: a client without
+the run's credentials (plain TCP, or a certificate of another CA) cannot connect; with learner
+1's credentials it cannot publish as learner 2; the all-zero States it sends as learner 1 are
+refused by the learners, and the run ends exactly where a clean run ends."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.config import ConfigError, RunConfig
+from swarmmap.shared.models import model_from_settings, param_count
+from swarmmap.shared.protocol import Keys, State, Tensor
+from swarmmap.shared.secrets import write_secrets
+from tests.conftest import SWARMMAP, clean_env, wait_until
+
+pytestmark = pytest.mark.e2e
+
+ARGS = ["up", "--preset", "smoke", "--robots", "3", "--rounds", "40", "--no-observer"]
+
+
+def final_losses(run_dir: Path) -> dict[str, float]:
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"], summary
+    return {r: v["final_val_bce"] for r, v in summary["learners"].items()}
+
+
+def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
+    clean = subprocess.run([*SWARMMAP, *ARGS, "--run-dir", str(tmp_path / "clean")], capture_output=True, text=True,
+                           timeout=300, env=clean_env())
+    assert clean.returncode == 0, clean.stderr[-3000:]
+
+    run_dir = tmp_path / "attacked"
+    proc = subprocess.Popen([*SWARMMAP, *ARGS, "--run-dir", str(run_dir)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.STDOUT, env=clean_env())
+    try:
+        recorder_log = run_dir / "logs" / "recorder-0.log"
+        assert wait_until(lambda: recorder_log.exists() and "recording run" in recorder_log.read_text(), 120, 0.2)
+        cfg = RunConfig.model_validate(yaml.safe_load((run_dir / "config.yaml").read_text()))
+        keys = Keys(cfg.key_prefix, cfg.run_id)
+        router = cfg.zenoh.model_copy(update={"connect_timeout_s": 5})
+        # A stranger: plain TCP, then TLS with a certificate of another CA.
+        with pytest.raises(ConfigError, match="cannot open a session"):
+            Bus.open(router.model_copy(update={"insecure": True, "mode": "client"}), keys, "learner", 1)
+        write_secrets(tmp_path / "forged", 3, {"enabled": True})
+        with pytest.raises(ConfigError, match="cannot open a session"):
+            Bus.open(router.model_copy(update={"secrets": tmp_path / "forged"}), keys, "learner", 1)
+        # A member gone rogue: learner 1's own credentials.
+        size = param_count(model_from_settings(cfg.learner, (0, 0, 1, 1), cfg.seed))
+        zeros = Tensor.of(np.zeros(size, np.float32), "<f4")
+        with Bus.open(router, keys, "learner", 1) as rogue:
+            as_self, as_other = rogue.publisher(keys.state(1)), rogue.publisher(keys.state(2))
+            assert wait_until(lambda: "round    0" in recorder_log.read_text(), 120, 0.1)
+            deadline = time.monotonic() + 60
+            while proc.poll() is None and time.monotonic() < deadline and "(final)" not in recorder_log.read_text():
+                for k in range(cfg.learner.rounds + 1):
+                    as_self.put(State(run=cfg.run_id, sender=1, round=k, params=zeros))
+                    as_other.put(State(run=cfg.run_id, sender=2, round=k, params=zeros))
+                time.sleep(0.05)
+        assert proc.wait(timeout=240) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert final_losses(run_dir) == final_losses(tmp_path / "clean"), "the hostile States changed the result"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    # Learner 1's neighbours refused its zero States; nobody ever saw learner 2's forged ones
+    # (the router dropped them), so learner 2's own neighbours refused only learner 1's.
+    assert summary["learners"]["0"]["refused"] > 0 and summary["learners"]["2"]["refused"] > 0
+    logs = (run_dir / "logs" / "learner-0.log").read_text()
+    assert "refused the state of node 1" in logs and "refused the state of node 2" not in logs
