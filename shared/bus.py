@@ -25,8 +25,8 @@ from typing import Any, TypeVar
 import zenoh
 
 from swarmmap.shared.config import ConfigError, ZenohSettings
-from swarmmap.shared.secrets import identity
 from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, decode, encode
+from swarmmap.shared.secrets import identity
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
