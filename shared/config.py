@@ -177,10 +177,12 @@ class LearnerSettings(Section):
                                                         "a learner started on a run directory with a checkpoint resumes from it")
     map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
     collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
-    peer_timeout_s: float = Field(120.0, gt=0, description="fail when no peer message arrives for this long")
+    peer_timeout_s: float = Field(120.0, gt=0, description="fail when this node has had no neighbour (all left or silent) for this long")
     max_state_distance: float = Field(
         0.5, gt=0, description="refuse a neighbour's State whose parameters lie farther from this node's own than this "
                                "multiple of their norm (and constant ones, e.g. all zero): defence against a hostile member")
+    silent_after_s: float = Field(30.0, gt=0, description="leave a neighbour out of the round when it has been silent "
+                                                         "this long (it is taken back when it sends again)")
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")

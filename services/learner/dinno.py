@@ -94,6 +94,25 @@ class LocalNode:
         """The node's model parameters (a prefix of its State for DSGT)."""
         return get_flat(self.model).cpu().numpy().astype(np.float32)
 
+    def params_of(self, state: np.ndarray) -> np.ndarray:
+        """The model parameters inside a State of this node's kind."""
+        return state[: self.param_count]
+
+    @property
+    def param_count(self) -> int:
+        return sum(p.numel() for p in self.model.parameters())
+
+    def state_size(self) -> int:
+        """Values in a State of this node's kind."""
+        return self.param_count
+
+    def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        """The state a node that was away starts from when it catches up with its team: the mean
+        of the neighbours' States (its own is stale); link state restarts."""
+        if not peers:
+            return own
+        return np.mean(np.stack(list(peers.values())), axis=0).astype(np.float32)
+
     def batch_loss(self) -> torch.Tensor:
         """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
         idx = torch.randint(0, len(self.points), (min(self.s.batch_size, len(self.points)),), generator=self.gen)
@@ -117,7 +136,7 @@ class DinnoNode(LocalNode):
                  settings: LearnerSettings, seed: int):
         super().__init__(model, points, labels, settings, seed)
         self.rho = settings.rho_init
-        self.duals = torch.zeros_like(get_flat(model))
+        self.duals: dict[int, torch.Tensor] = {}  # one per link (as UDON): a lost link's dual is left out, not mixed in
         names = [n for n, _ in model.named_parameters()]
         params = list(model.parameters())
         rho_flags = torch.cat([torch.full((p.numel(),), is_rho(n), dtype=torch.bool) for n, p in zip(names, params)])
@@ -131,13 +150,13 @@ class DinnoNode(LocalNode):
 
     def checkpoint(self) -> dict:
         doc = super().checkpoint()
-        doc.update(duals=self.duals.cpu(), rho=self.rho,
+        doc.update(duals={j: d.cpu() for j, d in self.duals.items()}, rho=self.rho,
                    optimizers=None if self.optimizers is None else [o.state_dict() for o in self.optimizers])
         return doc
 
     def restore(self, doc: dict) -> None:
         super().restore(doc)
-        self.duals = doc["duals"].to(self.device)
+        self.duals = {int(j): d.to(self.device) for j, d in doc["duals"].items()}
         self.rho = doc["rho"]
         if self.optimizers is not None and doc.get("optimizers") is not None:
             for opt, state in zip(self.optimizers, doc["optimizers"]):
@@ -163,15 +182,21 @@ class DinnoNode(LocalNode):
         kl = gaussian_kl(torch.zeros_like(sigma), sigma, 0.0, F.softplus(th_reg[:, rho]))
         return penalty + self.s.w_rho * self.rho * kl.sum()
 
+    def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        self.duals.clear()
+        return super().rejoin(own, peers)
+
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """One DiNNO round for this node given neighbours' parameters of round ``k``."""
         th_i = torch.as_tensor(theta_i, device=self.device)
         set_flat(self.model, th_i)
-        self.rho *= self.s.rho_growth
-        th_reg = None
+        self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
+        th_reg = duals = None
         if peers:
             thj = torch.stack([torch.as_tensor(p, device=self.device) for p in peers.values()])
-            self.duals += self.rho * torch.sum(th_i - thj, dim=0)
+            for j, th in zip(peers, thj):
+                self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + self.rho * (th_i - th)
+            duals = torch.stack([self.duals[j] for j in peers]).sum(0)  # the links of this round only
             th_reg = (thj + th_i) / 2
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])
         if self.optimizers is None:
@@ -187,7 +212,7 @@ class DinnoNode(LocalNode):
             loss = self.batch_loss()
             if th_reg is not None:
                 th = torch.nn.utils.parameters_to_vector(self.model.parameters())
-                loss = loss + torch.dot(th, self.duals) + self.consensus_penalty(th, th_reg)
+                loss = loss + torch.dot(th, duals) + self.consensus_penalty(th, th_reg)
             loss.backward()  # one backward of the sum: both groups' gradients before either step
             for opt in optimizers:
                 opt.step()
@@ -220,6 +245,11 @@ def consensus_error(theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> float:
     return float(np.mean([np.linalg.norm(a - p / max(np.linalg.norm(p), 1e-12)) for p in peers.values()]))
 
 
+def self_weight(weights: dict[int, float], node: int, peers: dict[int, np.ndarray]) -> float:
+    """A node's mixing weight for a round: its own, plus that of every neighbour absent from it."""
+    return weights[node] + sum(w for j, w in weights.items() if j != node and j not in peers)
+
+
 class DsgdNode(LocalNode):
     """DiNNO's DSGD baseline: mix with the neighbours by Metropolis weights, then one gradient
     step of size ``lrs[k]`` at the mixed parameters. (DiNNO's single-process loop mixes in
@@ -231,7 +261,8 @@ class DsgdNode(LocalNode):
         self.weights, self.node = weights, node
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
-        mixed = self.weights[self.node] * torch.as_tensor(theta_i, device=self.device)
+        own = self_weight(self.weights, self.node, peers)  # an absent neighbour's weight stays home
+        mixed = own * torch.as_tensor(theta_i, device=self.device)
         for j, th in peers.items():
             mixed = mixed + self.weights[j] * torch.as_tensor(th, device=self.device)
         set_flat(self.model, mixed)
@@ -262,12 +293,16 @@ class DsgtNode(LocalNode):
     def state(self) -> np.ndarray:
         return torch.cat([get_flat(self.model), self.y]).cpu().numpy().astype(np.float32)
 
+    def state_size(self) -> int:
+        return 2 * self.param_count  # [theta, y]
+
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         n, w = self.n, self.weights
         own = torch.as_tensor(state_i, device=self.device)
         alpha = float(self.lrs[min(k, len(self.lrs) - 1)])
-        theta = w[self.node] * own[:n] - alpha * own[n:]
-        y = w[self.node] * own[n:]
+        w_own = self_weight(w, self.node, peers)
+        theta = w_own * own[:n] - alpha * own[n:]
+        y = w_own * own[n:]
         for j, st in peers.items():
             other = torch.as_tensor(st, device=self.device)
             theta = theta + w[j] * other[:n]
@@ -278,5 +313,4 @@ class DsgtNode(LocalNode):
         self.g_old = g
         return self.state()
 
-    def params(self) -> np.ndarray:
-        return get_flat(self.model).cpu().numpy().astype(np.float32)
+

@@ -8,9 +8,12 @@ a future State). Finishing sends ``State(round + 1)`` with the updated parameter
 Beyond the paper's listing: messages are buffered per round, so an early State is kept for its
 round and a late or duplicate one is ignored (rounds never mix); a node never finishes a round
 before its own update; this round's messages are sent again after ``resend_after`` seconds
-without progress (receivers ignore duplicates), and a neighbour that left (its liveliness token
-vanished) or stayed silent for ``peer_timeout`` seconds while still needed stops the node with
-:class:`PeerFailure` naming it. A node with no neighbours trains alone.
+without progress (receivers ignore duplicates). Robots come and go (the paper assumes they do
+not): a neighbour that left (its liveliness token vanished) or went silent is left out and the
+round finishes with the neighbours the node has; it is taken back when it sends a State of the
+round at hand; a node that restarts behind its team catches up to the team's round. Only a
+node left with no neighbour at all for ``peer_timeout`` seconds stops, with :class:`PeerFailure`.
+A node with no neighbours in its graph trains alone.
 """
 
 from __future__ import annotations
@@ -65,12 +68,17 @@ class ExchangeStats:
     final_peers: dict[int, np.ndarray] = field(default_factory=dict)
     refused: Counter[str] = field(default_factory=Counter)
     logged: set[tuple[str, int]] = field(default_factory=set)
+    left_out: int = 0  # times a neighbour was left out of a round (gone or silent)
+    rejoined: int = 0  # times one came back
+    caught_up: int = 0  # times this node jumped ahead to its team's round
 
 
 # A State of a round further ahead than this cannot be needed yet (a neighbour is at most one
 # round ahead of a node it waits for); it is refused, so that memory stays bounded.
 ROUNDS_AHEAD = 2
 StateCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
+Rejoin = Callable[[np.ndarray, dict[int, np.ndarray]], np.ndarray]
+CHECK_EVERY_S = 0.5  # how often a waiting node looks for neighbours gone or silent
 
 
 def implausible(theirs: np.ndarray, own: np.ndarray, max_distance: float) -> str | None:
@@ -105,21 +113,36 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                    node_update: NodeUpdate, transport: Transport, *, start_round: int = 0,
                    stats: ExchangeStats | None = None, stop: threading.Event | None = None,
                    peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0,
-                   check_state: StateCheck | None = None) -> np.ndarray:
+                   check_state: StateCheck | None = None, silent_after: float = 30.0,
+                   rejoin: Rejoin | None = None, resumed: bool = False) -> np.ndarray:
     """Run rounds ``start_round .. max_rounds - 1``; return the final state.
 
     ``node_update(round, state, {peer: peer_state})`` is the algorithm (DiNNO's, here); it sees
-    exactly the neighbours' States of ``round``. After the last round the node waits up to
-    ``linger`` seconds for its neighbours' final States (kept in ``stats.final_peers``), which
-    also gives its own last messages time to reach them before the caller closes the transport.
-    ``check_state(theirs, own)`` may refuse a neighbour's State (it returns why); refused States,
-    and States more than ROUNDS_AHEAD rounds ahead, are counted in ``stats.refused`` and the
-    round goes on without them.
+    exactly the States of ``round`` of the neighbours it has. After the last round the node
+    waits up to ``linger`` seconds for its neighbours' final States (kept in
+    ``stats.final_peers``), which also gives its own last messages time to reach them before the
+    caller closes the transport. ``check_state(theirs, own)`` may refuse a neighbour's State (it
+    returns why); refused States, and States more than ROUNDS_AHEAD rounds ahead, are counted in
+    ``stats.refused`` and the round goes on without them.
+
+    Robots come and go. A neighbour whose liveliness token vanished, or that stayed silent for
+    ``silent_after`` seconds while this node waited on it, is left out: the round finishes with
+    the neighbours the node has. It is taken back once it sends a State of the round at hand or
+    a later one. A node ``resumed`` from a checkpoint may be behind its team; it catches up:
+    before it has finished a round with a neighbour, a plausible State of a later round makes it
+    jump to that round, starting from ``rejoin(own_state, {peer: state})`` (default: its own
+    state). A node whose neighbours are all left out waits for one to come back, and fails
+    (PeerFailure) when it has had none for ``peer_timeout`` seconds.
     """
     stats = stats if stats is not None else ExchangeStats()
     buf = _Rounds()
     rnd = start_round
     updated = False
+    active = set(neighbours)  # the neighbours this round waits for
+    returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
+    joining = resumed  # may jump ahead to its team's round, until it finishes a round with a neighbour
+    heard = dict.fromkeys(neighbours, time.monotonic())
+    alone_since: float | None = None
 
     def send_state() -> None:
         t0 = time.perf_counter()
@@ -131,9 +154,13 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         transport.send_round_complete(rnd)
         stats.send_s += time.perf_counter() - t0
 
+    def leave_out(j: int, why: str) -> None:
+        active.discard(j)
+        stats.left_out += 1
+        log.warning("node %d: neighbour %d %s; round %d goes on without it", node_id, j, why, rnd)
+
     send_state()
-    last_progress = time.monotonic()
-    last_resend = last_progress
+    last_resend = last_check = time.monotonic()
     while rnd < max_rounds:
         if stop is not None and stop.is_set():
             raise InterruptedError(f"node {node_id} stopped at round {rnd}")
@@ -142,58 +169,99 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         while progressed and rnd < max_rounds:
             progressed = False
             peers = buf.states[rnd]
-            if not updated and neighbours <= peers.keys():
-                state = node_update(rnd, state, {j: peers[j] for j in sorted(neighbours)})
+            if not updated and (active or not neighbours) and active <= peers.keys():
+                state = node_update(rnd, state, {j: peers[j] for j in sorted(active)})
                 updated = True
                 send_complete()
                 progressed = True
             moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
-            if updated and (neighbours <= buf.complete[rnd] or moved_on):
+            if updated and (active <= buf.complete[rnd] or moved_on):
+                joining = joining and not active
                 buf.states.pop(rnd, None)
                 buf.complete.pop(rnd, None)
                 rnd += 1
                 updated = False
                 stats.rounds_done += 1
+                if returning:
+                    log.info("node %d: neighbour(s) %s back from round %d", node_id, sorted(returning), rnd)
+                    active |= returning
+                    stats.rejoined += len(returning)
+                    returning.clear()
                 send_state()
                 progressed = True
             if progressed:
-                last_progress = last_resend = time.monotonic()
+                last_resend = time.monotonic()
         if rnd >= max_rounds:
             break
-        t0 = time.perf_counter()
-        msg = transport.receive(timeout=min(resend_after, 0.5))
-        stats.wait_s += time.perf_counter() - t0
-        if msg is not None:
-            if msg.sender in neighbours and msg.round >= rnd:
-                if msg.round > rnd + ROUNDS_AHEAD:
-                    refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
-                elif msg.kind == "complete":
-                    buf.complete[msg.round].add(msg.sender)
-                elif msg.sender not in buf.states[msg.round]:  # the first State of a round counts
-                    why = check_state(msg.params, state) if check_state is not None else None
-                    if why is None:
-                        buf.states[msg.round][msg.sender] = msg.params
-                    else:
-                        refuse(stats, node_id, msg, why, "implausible")
-            continue
         now = time.monotonic()
-        needed = _still_needed(neighbours, buf, rnd, updated)
-        gone = needed & transport.lost_peers()
-        if gone:
-            raise PeerFailure(f"node {node_id}: neighbour(s) {sorted(gone)} left during round {rnd} "
-                              f"(their liveliness token vanished) before sending what round {rnd} needs")
-        if now - last_progress > peer_timeout:
-            raise PeerFailure(f"node {node_id}: no progress in round {rnd} for {peer_timeout:.0f} s; "
-                              f"still waiting for neighbour(s) {sorted(needed)}")
-        if now - last_resend > resend_after:
-            send_state()
-            if updated:
-                send_complete()
-            stats.resends += 1
-            last_resend = now
+        if now - last_check >= CHECK_EVERY_S:  # whatever arrives, look at who is gone or silent
+            last_check = now
+            # Leave out the neighbours this round waits on that are gone or silent.
+            lost = transport.lost_peers()
+            for j in sorted(_still_needed(active, buf, rnd, updated)):
+                if j in lost:
+                    leave_out(j, "left (its liveliness token vanished)")
+                elif now - heard[j] > silent_after:
+                    leave_out(j, f"has been silent for {now - heard[j]:.0f} s")
+            if neighbours and not active:
+                alone_since = alone_since or now
+                if now - alone_since > peer_timeout:
+                    raise PeerFailure(f"node {node_id}: no neighbour for {peer_timeout:.0f} s in round {rnd} "
+                                      f"(neighbour(s) {sorted(neighbours)} left or went silent)")
+            else:
+                alone_since = None
+            if now - last_resend > resend_after:
+                send_state()
+                if updated:
+                    send_complete()
+                stats.resends += 1
+                last_resend = now
+            continue  # the neighbours left out may let the round advance
+        t0 = time.perf_counter()
+        msg = transport.receive(timeout=CHECK_EVERY_S)
+        stats.wait_s += time.perf_counter() - t0
+        now = time.monotonic()
+        if msg is not None:
+            j = msg.sender
+            if j not in neighbours or msg.round < rnd:
+                continue
+            heard[j] = now
+            if msg.kind == "complete":
+                if msg.round <= rnd + ROUNDS_AHEAD:
+                    buf.complete[msg.round].add(j)
+                continue
+            if j in buf.states[msg.round]:
+                continue  # the first State of a round counts
+            if msg.round > rnd + ROUNDS_AHEAD and not (joining and not updated and msg.round <= max_rounds):
+                refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
+                continue
+            why = check_state(msg.params, state) if check_state is not None else None
+            if why is not None:
+                refuse(stats, node_id, msg, why, "implausible")
+                continue
+            if joining and not updated and msg.round > rnd:  # the team is ahead: catch up with it
+                log.info("node %d: neighbour %d is at round %d; catching up from round %d", node_id, j, msg.round, rnd)
+                buf.states = defaultdict(dict, {r: v for r, v in buf.states.items() if r >= msg.round})
+                buf.complete = defaultdict(set, {r: v for r, v in buf.complete.items() if r >= msg.round})
+                rnd = msg.round
+                buf.states[rnd][j] = msg.params
+                state = rejoin(state, dict(buf.states[rnd])) if rejoin is not None else state
+                active = {j} | (active & buf.states[rnd].keys())
+                returning = set(neighbours) - active
+                stats.caught_up += 1
+                send_state()
+                continue
+            buf.states[msg.round][j] = msg.params
+            if j not in active:
+                if msg.round == rnd and not updated:
+                    active.add(j)
+                    stats.rejoined += 1
+                    log.info("node %d: neighbour %d back in round %d", node_id, j, rnd)
+                else:
+                    returning.add(j)
     deadline = time.monotonic() + linger
     final = buf.states[max_rounds]
-    while not neighbours <= final.keys() and time.monotonic() < deadline:
+    while not active <= final.keys() and time.monotonic() < deadline:
         msg = transport.receive(timeout=max(0.0, min(0.2, deadline - time.monotonic())))
         if msg is not None and msg.kind == "state" and msg.sender in neighbours and msg.round == max_rounds:
             final[msg.sender] = msg.params

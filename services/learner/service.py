@@ -36,7 +36,7 @@ from swarmmap.shared.bnn import BayesNet, predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import model_from_settings, param_count, pick_device, save_model, set_flat
+from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
 from swarmmap.shared.protocol import Keys, Metrics, Samples, State, Tensor, WorldMap
 
 log = logging.getLogger("learner")
@@ -116,23 +116,46 @@ class RobotLearner:
         self.t_start = 0.0
         self.start_round = 0
         self.start_state: np.ndarray | None = None
+        self.resumed = False
+        self.before: dict[str, float] = {}  # counters of the runs this one resumes: metrics stay cumulative
         self.checkpoint_path = cfg.run_dir / "checkpoints" / f"robot-{robot}.pt" if cfg.run_dir is not None else None
 
     def resumable(self) -> dict | None:
-        """This robot's checkpoint in the run directory, if there is one."""
-        if self.checkpoint_path is None or not self.checkpoint_path.exists() or self.s.checkpoint_every == 0:
+        """This robot's checkpoint in the run directory, if there is one; one written with other
+        settings is refused, never loaded."""
+        if self.checkpoint_path is None or self.s.checkpoint_every == 0:
+            return None
+        for stale in self.checkpoint_path.parent.glob(f".{self.checkpoint_path.name}.*.tmp"):
+            stale.unlink(missing_ok=True)  # left by a learner killed while writing: the checkpoint itself is whole
+        if not self.checkpoint_path.exists():
             return None
         try:
-            return torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+            doc = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
         except Exception as exc:  # a checkpoint we cannot read is not silently ignored
             raise LearnerError(f"robot {self.robot}: cannot read checkpoint {self.checkpoint_path}: {exc}", 2) from None
+        mine, theirs = settings_fingerprint(self.cfg), doc.get("fingerprint")
+        if theirs != mine:
+            what = ("it comes from an older swarmmap" if theirs is None else
+                    ", ".join(f"{k} {theirs.get(k)!r} there, {v!r} here" for k, v in mine.items() if theirs.get(k) != v))
+            raise LearnerError(f"robot {self.robot}: refusing to resume from {self.checkpoint_path}: it was written by a run "
+                               f"with other settings ({what}). Run into another --run-dir, or remove "
+                               f"{self.checkpoint_path.parent} to start this one afresh", 2)
+        return doc
+
+    def counters(self) -> dict[str, float]:
+        """This learner's counters, including those of the runs it resumed."""
+        sent, received = exchange_bytes(self.bus, self.robot)
+        now = {"bytes_sent": sent, "bytes_received": received, "compute_s": self.compute_s, "wait_s": self.stats.wait_s,
+               "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": time.monotonic() - self.t_start if self.t_start else 0.0}
+        return {k: v + self.before.get(k, 0) for k, v in now.items()}
 
     def save_checkpoint(self, k: int, theta: np.ndarray) -> None:
         """Atomically write what round ``k`` starts from."""
         buf = io.BytesIO()
         torch.save({"round": k, "state": torch.from_numpy(theta.copy()), "node": self.node.checkpoint(),
                     "points": torch.from_numpy(self.points), "labels": torch.from_numpy(self.labels),
-                    "run_id": self.cfg.run_id}, buf)
+                    "run_id": self.cfg.run_id, "fingerprint": settings_fingerprint(self.cfg),
+                    "counters": self.counters()}, buf)
         atomic_write_bytes(self.checkpoint_path, buf.getvalue())
 
     def prepare(self, world: WorldMap, stop: threading.Event) -> None:
@@ -144,6 +167,8 @@ class RobotLearner:
             self.setup(world)
             self.node.restore(doc["node"])
             self.start_round, self.start_state = int(doc["round"]), doc["state"].numpy()
+            set_flat(self.node.model, torch.from_numpy(self.node.params_of(self.start_state).copy()))
+            self.resumed, self.before = True, dict(doc.get("counters", {}))
             log.info("robot %d: resuming from %s at round %d", robot, self.checkpoint_path, self.start_round)
             return
         ready = self.collector.first if s.data == "online" else self.collector.done
@@ -160,6 +185,8 @@ class RobotLearner:
             raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
         log.info("robot %d: %d training points (%.1f%% occupied)", robot, len(self.points), 100 * self.labels.mean())
         self.setup(world)
+        if self.checkpoint_path is not None and s.checkpoint_every:  # a learner restarted from now on keeps its data
+            self.save_checkpoint(0, self.node.state())
 
     def setup(self, world: WorldMap) -> None:
         """The validation set, the graph and the node, once the points are known."""
@@ -189,14 +216,13 @@ class RobotLearner:
             self.node = DinnoNode(model, *data, s, seed)
 
     def publish_metrics(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
-        sent, received = exchange_bytes(self.bus, self.robot)
-        n = len(self.node.params())  # DSGT's State also carries its gradient tracker
-        msg = Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=time.monotonic() - self.t_start,
+        c, params_of = self.counters(), self.node.params_of
+        msg = Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=c["wall_time_s"],
                       val_bce=validation_bce(self.node.model, self.val_x, self.val_y),
-                      consensus_error=consensus_error(theta[:n], {j: p[:n] for j, p in peers.items()}),
-                      bytes_sent=sent, bytes_received=received,
-                      compute_s=self.compute_s, wait_s=self.stats.wait_s, send_s=self.stats.send_s,
-                      n_points=len(self.points), pid=os.getpid(), refused=self.refused(), final=final)
+                      consensus_error=consensus_error(params_of(theta), {j: params_of(p) for j, p in peers.items()}),
+                      bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
+                      compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
+                      n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final)
         self.metrics_pub.put(msg)
         if self.state_pub is not None:
             self.state_pub.put(State(run=self.cfg.run_id, sender=self.robot, round=k, params=Tensor.of(theta, "<f4")))
@@ -208,8 +234,10 @@ class RobotLearner:
         return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused
 
     def check_state(self, theirs: np.ndarray, own: np.ndarray) -> str | None:
-        n = len(self.node.params())  # DSGT's State also carries its gradient tracker: judge the parameters
-        return implausible(theirs[:n], own[:n], self.s.max_state_distance)
+        if theirs.shape != own.shape:
+            return f"{theirs.size} values, this node's State has {own.size}"
+        params_of = self.node.params_of  # DSGT's State also carries its gradient tracker: judge the parameters
+        return implausible(params_of(theirs), params_of(own), self.s.max_state_distance)
 
     def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         every = self.s.checkpoint_every
@@ -235,10 +263,11 @@ class RobotLearner:
             final = run_algorithm1(robot, self.neighbours, s.rounds, start, self.node_update, transport,
                                    start_round=self.start_round, stats=self.stats, stop=stop,
                                    peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
-                                   check_state=self.check_state)
+                                   check_state=self.check_state, silent_after=s.silent_after_s,
+                                   rejoin=self.node.rejoin, resumed=self.resumed)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
-        set_flat(self.node.model, torch.from_numpy(final[: len(self.node.params())]))
+        set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
         self.finish(final, self.stats.final_peers)
 
     def finish(self, final: np.ndarray, peers: dict[int, np.ndarray]) -> None:
@@ -267,8 +296,6 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     torch.set_num_threads(s.torch_threads)
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
-    n_params = param_count(model_from_settings(s, (0, 0, 1, 1), cfg.seed))
-    state_size = 2 * n_params if s.algorithm == "dsgt" else n_params
     with Bus.open(cfg.zenoh, keys, "learner", robots[0]) as bus:
         bus.end_with_run(stop)
         learners = [RobotLearner(cfg, r, bus, device) for r in robots]
@@ -280,8 +307,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 return 0
             log.error("no reply from the world on %s within %.0f s", keys.world_map(), s.collect_timeout_s)
             return 3
-        log.info("robots %s (%s transport): model %s %s (%d parameters) on %s", robots, s.transport, s.model,
-                 s.model_shape, n_params, device)
+        log.info("robots %s (%s transport): model %s %s on %s", robots, s.transport, s.model, s.model_shape, device)
         try:
             for learner in learners:
                 learner.prepare(world, stop)
@@ -294,11 +320,13 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
                 me = learners[0]
-                transport = ZenohTransport(bus, me.robot, me.neighbours, state_size)
+                transport = ZenohTransport(bus, me.robot, me.neighbours, me.node.state_size())
                 bus.announce(me.robot, service="exchange")
                 missing = bus.wait_alive("exchange", {str(j) for j in me.neighbours}, s.peer_timeout_s, stop)
-                if missing and not stop.is_set():
+                if me.neighbours and missing == {str(j) for j in me.neighbours} and not stop.is_set():
                     raise LearnerError(f"neighbour learner(s) {sorted(missing)} never became ready to exchange", 4)
+                if missing:
+                    log.warning("robot %d: starting without neighbour(s) %s (not ready to exchange)", me.robot, sorted(missing))
                 run_all(learners, {me.robot: transport}, stop)
         except LearnerError as exc:
             log.error("%s", exc)
@@ -326,6 +354,15 @@ def train_centralized(learners: list[RobotLearner], stop: threading.Event) -> No
     for r in learners[1:]:
         r.node, r.points, r.t_start, r.compute_s = head.node, head.points, head.t_start, head.compute_s
         r.finish(final, {})
+
+
+def settings_fingerprint(cfg: RunConfig) -> dict:
+    """What a checkpoint must share with the run that resumes from it."""
+    s = cfg.learner
+    return {"checkpoint_format": 2, "seed": cfg.seed, "robots": cfg.robots, "model": s.model,
+            "model_shape": list(s.model_shape), "algorithm": s.algorithm,
+            "regularization": s.regularization if s.model == "bnn" else None, "data": s.data,
+            "floorplan": cfg.world.floorplan, "waypoints": cfg.world.waypoints}
 
 
 def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:

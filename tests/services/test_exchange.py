@@ -125,19 +125,21 @@ def test_node_without_neighbours_trains_alone():
     assert out.tolist() == [5.0, 5.0] and stats.rounds_done == 5
 
 
-def test_silent_peer_is_named_after_timeout():
+def test_a_node_left_without_neighbours_fails_after_the_timeout_naming_them(caplog):
     hub = MemoryHub({0: {1}, 1: {0}})
-    with pytest.raises(PeerFailure, match=r"neighbour\(s\) \[1\]"):
-        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, hub.transport(0), peer_timeout=0.5,
-                       resend_after=0.1)
+    with pytest.raises(PeerFailure, match=r"no neighbour for 1 s .*neighbour\(s\) \[1\]"):
+        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, hub.transport(0), peer_timeout=1,
+                       resend_after=0.1, silent_after=0.3)
+    assert "neighbour 1 has been silent" in caplog.text
 
 
-def test_lost_peer_is_named():
+def test_a_lost_neighbour_is_left_out_and_named(caplog):
     hub = MemoryHub({0: {1}, 1: {0}})
     transport = hub.transport(0)
     transport.lost_peers = lambda: {1}
-    with pytest.raises(PeerFailure, match="left during round 0"):
-        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, transport, peer_timeout=30, resend_after=0.1)
+    with pytest.raises(PeerFailure, match="no neighbour"):
+        run_algorithm1(0, {1}, 3, np.zeros(1), lambda k, th, p: th, transport, peer_timeout=0.5, resend_after=0.1)
+    assert "neighbour 1 left (its liveliness token vanished); round 0 goes on without it" in caplog.text
 
 
 def test_implausible_states_are_named():
