@@ -6,8 +6,11 @@ to the router, multicast scouting off), waits until they are alive, then starts 
 The recorder (``swarmmap recorder``, the same service compose and SLURM start) writes the run
 directory and ends the run: when every learner has finished, or one has failed, it says so on
 ``run/done`` and every service exits by itself; ``up`` returns the recorder's status. A
-service that exits with an error, or Ctrl-C, stops the rest (in parallel, within
-``up.stop_grace_s``). ``up`` adds every service's pid and exit status to ``summary.json``.
+learner, lidar or world that crashes is started again (``up.restarts`` times each; a learner
+resumes from its checkpoint and rejoins its team). A service that fails for good, or Ctrl-C,
+stops the rest (in parallel, within ``up.stop_grace_s``). Services die with ``up``, even when
+it is killed (a parent-death signal). ``up`` adds every service's pid, exit status and restarts
+to ``summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
@@ -21,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -40,8 +44,19 @@ from swarmmap.shared.secrets import access_policy, write_secrets
 
 log = logging.getLogger("up")
 
-# How long after a service failed the recorder gets to end the run by itself (run/done).
-FAILURE_GRACE_S = 15.0
+# How long after a service failed (for good) the recorder gets to end the run by itself (run/done).
+FAILURE_GRACE_S = 30.0
+RESTARTABLE = ("learner", "lidar", "world")  # crashed ones are started again, up.restarts times each
+
+
+def die_with_parent() -> None:
+    """In a child, before exec: get SIGTERM when ``up`` dies (even by SIGKILL), so no service outlives it."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:  # not Linux: Ctrl-C and the process group still stop the services
+        pass
 
 
 def free_port() -> int:
@@ -103,12 +118,14 @@ def run_secrets(cfg: RunConfig, stop: threading.Event) -> int:
 
 @dataclass
 class Child:
-    """One service process."""
+    """One service process (the latest, when it was restarted)."""
 
     service: str
     ident: int
     proc: subprocess.Popen
     log_path: Path
+    args: tuple[str, ...] = ()
+    restarts: int = 0
 
     @property
     def name(self) -> str:
@@ -131,16 +148,28 @@ class Launcher:
 
     def spawn(self, service: str, ident: int, *extra: str) -> Child:
         """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/."""
-        log_path = self.run_dir / "logs" / f"{service}-{ident}.log"
-        cmd = [sys.executable, "-m", "swarmmap.services.cli", service, "--config", str(self.config_path), *extra]
+        child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", extra)
+        self.start(child, "w")
+        self.children.append(child)
+        return child
+
+    def start(self, child: Child, mode: str) -> None:
+        cmd = [sys.executable, "-m", "swarmmap.services.cli", child.service, "--config", str(self.config_path), *child.args]
         # The config file already holds the resolved environment; children must not re-read it.
         env = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_") and k != "SLURM_PROCID"}
         env["PYTHONUNBUFFERED"] = "1"
-        with log_path.open("w") as out:
-            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-        child = Child(service, ident, proc, log_path)
-        self.children.append(child)
-        return child
+        with child.log_path.open(mode) as out:
+            child.proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                          preexec_fn=die_with_parent)
+
+    def restart(self, child: Child) -> None:
+        """Start a crashed service again (a learner resumes from its checkpoint and rejoins)."""
+        child.restarts += 1
+        log.warning("%s exited with status %s; restarting it (%d of %d). Its log (%s) ends:\n%s", child.name,
+                    child.proc.returncode, child.restarts, self.cfg.up.restarts, child.log_path, tail(child.log_path, 5))
+        with child.log_path.open("a") as out:
+            out.write(f"\n--- swarmmap up: restart {child.restarts} after exit status {child.proc.returncode} ---\n")
+        self.start(child, "a")
 
     def failed(self) -> Child | None:
         """A service that exited with an error."""
@@ -241,6 +270,9 @@ class Launcher:
                 else:
                     log.error("the run failed (recorder status %d); see %s", code, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
+            for c in self.children:
+                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0) and c.restarts < self.cfg.up.restarts:
+                    self.restart(c)
             if failed_at is None and (bad := self.failed()) is not None:
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
@@ -266,7 +298,8 @@ class Launcher:
                 entry.update(pid=c.proc.pid, exit_code=c.proc.returncode)
         summary["status"] = status
         summary["wall_time_s"] = round(wall, 3)
-        summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode} for c in self.children}
+        summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode, "restarts": c.restarts}
+                               for c in self.children}
         atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
         log.info("summary: %s", path)
 

@@ -13,8 +13,9 @@ and the SLURM job scripts all start one, so every launcher leaves the same run d
 It also decides when the run is over, and says so on ``run/done`` (``RunDone``), on which
 every other service exits: the run succeeded when every learner sent its final ``Metrics``;
 it failed when a learner left before finishing (its liveliness token vanished: it crashed or
-was killed), when the world or a lidar streamer left while still needed, or when a learner
-never came alive within ``recorder.start_timeout_s``. The recorder then waits up to
+was killed), or the world or a lidar streamer left while still needed, and did not come back
+within ``recorder.rejoin_timeout_s`` (``swarmmap up`` restarts crashed services), or when a
+learner never came alive within ``recorder.start_timeout_s``. The recorder then waits up to
 ``recorder.linger_s`` for the other services to leave and exits 0 (success) or 1 (failure),
 so ``docker compose up --exit-code-from recorder`` and a SLURM job end with the run's status.
 """
@@ -81,12 +82,14 @@ class RunTracker:
 
     Pure bookkeeping (no network), so that the rules can be tested alone."""
 
-    def __init__(self, robots: int):
+    def __init__(self, robots: int, rejoin_timeout: float = 0.0):
         self.robots = robots
+        self.rejoin_timeout = rejoin_timeout
         self._lock = threading.Lock()
         self.finished: set[int] = set()
         self.training: set[int] = set()  # learners that reported a round: they hold their data
         self.seen: set[tuple[str, int]] = set()
+        self.away: dict[tuple[str, int], tuple[float, str]] = {}  # left while needed: since when, and what it means
         self.failure: str | None = None
 
     def on_metrics(self, m: Metrics) -> None:
@@ -96,23 +99,30 @@ class RunTracker:
                 if m.final:
                     self.finished.add(m.sender)
 
-    def on_alive(self, service: str, ident: str, alive: bool) -> None:
+    def on_alive(self, service: str, ident: str, alive: bool, now: float | None = None) -> None:
+        """A liveliness token came (``alive``) or went. A service that leaves while still needed
+        fails the run unless it is back within ``rejoin_timeout`` seconds (a launcher restarts it)."""
         if not ident.isdigit():
             return
         key = (service, int(ident))
+        now = time.monotonic() if now is None else now
         with self._lock:
             if alive:
                 self.seen.add(key)
+                self.away.pop(key, None)
                 return
             if key not in self.seen or self.failure is not None or self._all_finished():
                 return
             robot = key[1]
             if service == "learner" and robot not in self.finished:
-                self.failure = f"learner {robot} left before finishing (its liveliness token vanished: it crashed, was killed or failed)"
+                why = f"learner {robot} left before finishing (its liveliness token vanished: it crashed, was killed or failed)"
             elif service == "lidar" and robot not in self.training:
-                self.failure = f"lidar {robot} left before learner {robot} had its training points"
+                why = f"lidar {robot} left before learner {robot} had its training points"
             elif service == "world" and len(self.training) < self.robots:
-                self.failure = "the world left before every learner had its training points"
+                why = "the world left before every learner had its training points"
+            else:
+                return
+            self.away[key] = (now, why)
 
     def learners_missing(self) -> list[int]:
         """Learners never seen alive."""
@@ -122,9 +132,15 @@ class RunTracker:
     def _all_finished(self) -> bool:
         return self.finished >= set(range(self.robots))
 
-    def outcome(self) -> tuple[bool, str] | None:
+    def outcome(self, now: float | None = None) -> tuple[bool, str] | None:
         """(ok, reason) once the run is over, else None."""
+        now = time.monotonic() if now is None else now
         with self._lock:
+            if self.failure is None and self.away:
+                since, why = min(self.away.values())
+                if now - since >= self.rejoin_timeout:
+                    back = f" and was not back within {self.rejoin_timeout:.0f} s" if self.rejoin_timeout else ""
+                    self.failure = why + back
             if self.failure is not None:
                 return False, self.failure
             if self._all_finished():
@@ -176,7 +192,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         atomic_write_text(run_dir / "config.yaml", cfg.dump_yaml())
     t0 = time.monotonic()
     metrics = MetricsRecorder(run_dir / "metrics.csv")
-    tracker = RunTracker(cfg.robots)
+    tracker = RunTracker(cfg.robots, s.rejoin_timeout_s)
     keys = Keys(cfg.key_prefix, cfg.run_id)
 
     def on_metrics(m: Metrics) -> None:

@@ -225,6 +225,18 @@ class RecorderSettings(Section):
 
     start_timeout_s: float = Field(600.0, gt=0, description="fail the run when a learner has not come alive after this long")
     linger_s: float = Field(30.0, ge=0, description="once the run is over, how long to wait for the other services to leave")
+    rejoin_timeout_s: float = Field(20.0, ge=0, description="a learner, lidar or the world that left while needed fails the run "
+                                                             "unless it is back within this long (0: at once)")
+
+
+class FaultSettings(Section):
+    """Faults injected on Algorithm 1's links, per link [sender, receiver] (tests, bench/, experiments on poor links)."""
+
+    link_success: float = Field(1.0, gt=0, le=1, description="probability that a State or RoundComplete reaches its neighbour")
+    duplicate: float = Field(0.0, ge=0, le=1, description="probability that a message arrives twice")
+    delay_s: float = Field(0.0, ge=0, description="extra delay of each message, uniform in [0, delay_s] (reorders them)")
+    links: list[list[int]] = Field(default_factory=list, description="the faulty links as [sender, receiver] pairs; empty: every link")
+    seed: int = Field(0, ge=0, description="seed of the fault draws")
 
 
 class UpSettings(Section):
@@ -246,6 +258,8 @@ class UpSettings(Section):
     observer_grace_s: float = Field(120.0, gt=0, description="how long the observer gets to map the final States and close "
                                                              "its recording once the learners are done")
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
+    restarts: int = Field(3, ge=0, description="restart a crashed learner, lidar or world up to this many times each "
+                                               "(it resumes from its checkpoint and rejoins); 0: a crash ends the run")
 
 
 class RunConfig(Section):
@@ -265,6 +279,7 @@ class RunConfig(Section):
     learner: LearnerSettings = Field(default_factory=LearnerSettings)
     observer: ObserverSettings = Field(default_factory=ObserverSettings)
     recorder: RecorderSettings = Field(default_factory=RecorderSettings)
+    faults: FaultSettings = Field(default_factory=FaultSettings)
     up: UpSettings = Field(default_factory=UpSettings)
 
     @model_validator(mode="after")

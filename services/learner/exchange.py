@@ -76,23 +76,26 @@ class ExchangeStats:
 # A State of a round further ahead than this cannot be needed yet (a neighbour is at most one
 # round ahead of a node it waits for); it is refused, so that memory stays bounded.
 ROUNDS_AHEAD = 2
-StateCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
+StateCheck = Callable[[np.ndarray, "np.ndarray | None"], "str | None"]
 Rejoin = Callable[[np.ndarray, dict[int, np.ndarray]], np.ndarray]
 CHECK_EVERY_S = 0.5  # how often a waiting node looks for neighbours gone or silent
 
 
-def implausible(theirs: np.ndarray, own: np.ndarray, max_distance: float) -> str | None:
+def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float) -> str | None:
     """Why a neighbour's parameters cannot come from an honest node, or None.
 
     Honest neighbours start from the same initialisation and consensus keeps them close, so
     parameters that are constant (e.g. all zero) or farther from this node's own than
-    ``max_distance`` times the norm of its own are refused."""
-    if theirs.shape != own.shape:
+    ``max_distance`` times the norm of its own are refused. Without ``own`` (a node catching up
+    with its team holds stale parameters) only the first test applies."""
+    if own is not None and theirs.shape != own.shape:
         return f"{theirs.size} parameters, expected {own.size}"
     if not np.isfinite(theirs).all():
         return "non-finite parameters"
     if theirs.size > 1 and np.ptp(theirs) == 0:
         return f"constant parameters ({float(theirs[0]):g} everywhere)"
+    if own is None:
+        return None
     scale = float(np.linalg.norm(own))
     distance = float(np.linalg.norm(theirs.astype(np.float64) - own))
     if scale > 0 and distance > max_distance * scale:
@@ -144,9 +147,11 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     heard = dict.fromkeys(neighbours, time.monotonic())
     alone_since: float | None = None
 
+    round_state = state  # what State(rnd) carries: the parameters at the start of the round (resent as such)
+
     def send_state() -> None:
         t0 = time.perf_counter()
-        transport.send_state(rnd, state)
+        transport.send_state(rnd, round_state)
         stats.send_s += time.perf_counter() - t0
 
     def send_complete() -> None:
@@ -187,6 +192,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                     active |= returning
                     stats.rejoined += len(returning)
                     returning.clear()
+                round_state = state
                 send_state()
                 progressed = True
             if progressed:
@@ -235,7 +241,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             if msg.round > rnd + ROUNDS_AHEAD and not (joining and not updated and msg.round <= max_rounds):
                 refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
                 continue
-            why = check_state(msg.params, state) if check_state is not None else None
+            # A node catching up holds stale parameters: it cannot judge distances to them.
+            why = check_state(msg.params, None if joining and not updated else state) if check_state is not None else None
             if why is not None:
                 refuse(stats, node_id, msg, why, "implausible")
                 continue
@@ -245,7 +252,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 buf.complete = defaultdict(set, {r: v for r, v in buf.complete.items() if r >= msg.round})
                 rnd = msg.round
                 buf.states[rnd][j] = msg.params
-                state = rejoin(state, dict(buf.states[rnd])) if rejoin is not None else state
+                state = round_state = rejoin(state, dict(buf.states[rnd])) if rejoin is not None else state
                 active = {j} | (active & buf.states[rnd].keys())
                 returning = set(neighbours) - active
                 stats.caught_up += 1

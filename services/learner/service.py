@@ -29,6 +29,7 @@ import torch
 
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce
 from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, implausible, run_algorithm1
+from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
@@ -117,6 +118,7 @@ class RobotLearner:
         self.start_round = 0
         self.start_state: np.ndarray | None = None
         self.resumed = False
+        self.final_state: np.ndarray | None = None
         self.before: dict[str, float] = {}  # counters of the runs this one resumes: metrics stay cumulative
         self.checkpoint_path = cfg.run_dir / "checkpoints" / f"robot-{robot}.pt" if cfg.run_dir is not None else None
 
@@ -145,8 +147,9 @@ class RobotLearner:
     def counters(self) -> dict[str, float]:
         """This learner's counters, including those of the runs it resumed."""
         sent, received = exchange_bytes(self.bus, self.robot)
+        wall = time.monotonic() - self.t_start if self.t_start else 0.0
         now = {"bytes_sent": sent, "bytes_received": received, "compute_s": self.compute_s, "wait_s": self.stats.wait_s,
-               "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": time.monotonic() - self.t_start if self.t_start else 0.0}
+               "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": wall}
         return {k: v + self.before.get(k, 0) for k, v in now.items()}
 
     def save_checkpoint(self, k: int, theta: np.ndarray) -> None:
@@ -233,11 +236,11 @@ class RobotLearner:
         far-future States, Samples after the last."""
         return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused
 
-    def check_state(self, theirs: np.ndarray, own: np.ndarray) -> str | None:
-        if theirs.shape != own.shape:
-            return f"{theirs.size} values, this node's State has {own.size}"
+    def check_state(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
+        if theirs.size != self.node.state_size():
+            return f"{theirs.size} values, this node's State has {self.node.state_size()}"
         params_of = self.node.params_of  # DSGT's State also carries its gradient tracker: judge the parameters
-        return implausible(params_of(theirs), params_of(own), self.s.max_state_distance)
+        return implausible(params_of(theirs), None if own is None else params_of(own), self.s.max_state_distance)
 
     def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         every = self.s.checkpoint_every
@@ -268,6 +271,7 @@ class RobotLearner:
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
+        self.final_state = final
         self.finish(final, self.stats.final_peers)
 
     def finish(self, final: np.ndarray, peers: dict[int, np.ndarray]) -> None:
@@ -315,12 +319,18 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 train_centralized(learners, stop)
             elif inproc:
                 hub = MemoryHub({r.robot: r.neighbours for r in learners})
-                run_all(learners, {r.robot: hub.transport(r.robot) for r in learners}, stop)
+                transports = {r.robot: hub.transport(r.robot) for r in learners}
+                if any_faults(cfg.faults):
+                    transports = {r: FaultyTransport(t, r, cfg.faults) for r, t in transports.items()}
+                run_all(learners, transports, stop)
             else:
                 # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
                 me = learners[0]
                 transport = ZenohTransport(bus, me.robot, me.neighbours, me.node.state_size())
+                if any_faults(cfg.faults):
+                    log.warning("robot %d: injecting faults on its incoming links: %s", me.robot, cfg.faults.model_dump())
+                    transport = FaultyTransport(transport, me.robot, cfg.faults)
                 bus.announce(me.robot, service="exchange")
                 missing = bus.wait_alive("exchange", {str(j) for j in me.neighbours}, s.peer_timeout_s, stop)
                 if me.neighbours and missing == {str(j) for j in me.neighbours} and not stop.is_set():
@@ -328,6 +338,11 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 if missing:
                     log.warning("robot %d: starting without neighbour(s) %s (not ready to exchange)", me.robot, sorted(missing))
                 run_all(learners, {me.robot: transport}, stop)
+                # Until the run is over, say the final State again now and then: a neighbour
+                # that restarts behind a finished team catches up to it.
+                deadline = time.monotonic() + (s.peer_timeout_s if bus.alive("recorder") else 0.5)
+                while not stop.wait(min(s.resend_after_s, max(0.0, deadline - time.monotonic()))) and time.monotonic() < deadline:
+                    transport.send_state(s.rounds, me.final_state)
         except LearnerError as exc:
             log.error("%s", exc)
             return exc.status
@@ -337,7 +352,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         # Stay until the run is over (the recorder's run/done): a launcher that stops everything
         # once one service exits (compose's --exit-code-from) must not cut the others short.
         # Without a recorder, stay until every neighbour has its final State from us.
-        stop.wait(s.peer_timeout_s if bus.alive("recorder") else 0.5)
+        if inproc or s.algorithm == "centralized":
+            stop.wait(s.peer_timeout_s if bus.alive("recorder") else 0.5)
     return 0
 
 

@@ -179,3 +179,29 @@ def test_hostile_and_far_future_states_are_refused_and_the_rounds_go_on():
         t.join(60)
     np.testing.assert_array_equal(results[0], ref[0])
     assert stats.refused["implausible"] == 3 and stats.refused["far-future"] == 1
+
+
+def test_faulty_links_lose_duplicate_and_reorder_yet_the_result_is_the_reference():
+    """30% of messages lost, 20% duplicated, delays that reorder: Algorithm 1 resends and still
+    ends exactly where the synchronous reference ends."""
+    from swarmmap.services.learner.faults import FaultyTransport
+    from swarmmap.shared.config import FaultSettings
+
+    faults = FaultSettings(link_success=0.7, duplicate=0.2, delay_s=0.02, seed=5)
+    graph, init = COMPLETE3, {i: np.full(4, float(i)) for i in COMPLETE3}
+    hub = MemoryHub(graph)
+    transports = {i: FaultyTransport(hub.transport(i), i, faults) for i in graph}
+    results = {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], 12, init[i], mixing_update(i), transports[i], resend_after=0.05, linger=0.5)
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    ref = reference(graph, 12, init)
+    for i in graph:
+        np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
+    assert sum(t.dropped for t in transports.values()) > 20 and sum(t.duplicated for t in transports.values()) > 5

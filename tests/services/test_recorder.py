@@ -27,6 +27,20 @@ def test_the_run_succeeds_once_every_learner_sent_its_final_metrics():
     assert t.outcome()[0]
 
 
+def test_a_learner_that_leaves_and_is_not_back_in_time_fails_the_run():
+    t = RunTracker(2, rejoin_timeout=20)
+    for i in range(2):
+        t.on_alive("learner", str(i), True, now=0)
+    t.on_alive("learner", "1", False, now=10)  # killed; the launcher restarts it
+    assert t.outcome(now=25) is None
+    t.on_alive("learner", "1", True, now=26)  # back: the run goes on
+    assert t.outcome(now=100) is None
+    t.on_alive("learner", "0", False, now=100)
+    assert t.outcome(now=119) is None
+    ok, reason = t.outcome(now=120.5)
+    assert not ok and reason.startswith("learner 0 left before finishing") and "not back within 20 s" in reason
+
+
 def test_a_learner_that_leaves_before_finishing_fails_the_run_and_is_named():
     t = RunTracker(3)
     for i in range(3):

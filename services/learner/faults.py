@@ -1,0 +1,73 @@
+"""Injected faults on Algorithm 1's links: loss, duplication, delay and reordering.
+
+:class:`FaultyTransport` wraps any :class:`~swarmmap.services.learner.exchange.Transport`
+(Zenoh's or the in-memory one) and applies ``faults`` (``FaultSettings``) to the messages that
+reach this node from its neighbours, per link ``[sender, receiver]``. A learner uses it when the
+run's ``faults`` section asks for any (tests, ``bench/``, experiments on poor links); by default
+it is not there at all.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import time
+
+import numpy as np
+
+from swarmmap.services.learner.exchange import Envelope, Transport
+from swarmmap.shared.config import FaultSettings
+
+
+def any_faults(faults: FaultSettings) -> bool:
+    return faults.link_success < 1 or faults.duplicate > 0 or faults.delay_s > 0
+
+
+class FaultyTransport:
+    """A transport whose incoming links lose, duplicate and delay (hence reorder) messages."""
+
+    def __init__(self, inner: Transport, node: int, faults: FaultSettings):
+        self.inner, self.node, self.f = inner, node, faults
+        self.rng = np.random.default_rng([faults.seed, node])
+        self.links = {tuple(link) for link in faults.links}
+        self.pending: list[tuple[float, int, Envelope]] = []  # (due, order, message)
+        self.order = itertools.count()
+        self.dropped = self.duplicated = 0
+
+    def send_state(self, round: int, params: np.ndarray) -> None:
+        self.inner.send_state(round, params)
+
+    def send_round_complete(self, round: int) -> None:
+        self.inner.send_round_complete(round)
+
+    def lost_peers(self) -> set[int]:
+        return self.inner.lost_peers()
+
+    def _faulty(self, sender: int) -> bool:
+        return not self.links or (sender, self.node) in self.links
+
+    def _admit(self, msg: Envelope) -> None:
+        if not self._faulty(msg.sender):
+            heapq.heappush(self.pending, (0.0, next(self.order), msg))
+            return
+        if self.rng.random() >= self.f.link_success:
+            self.dropped += 1
+            return
+        copies = 2 if self.rng.random() < self.f.duplicate else 1
+        self.duplicated += copies - 1
+        for _ in range(copies):
+            due = time.monotonic() + (self.rng.uniform(0, self.f.delay_s) if self.f.delay_s > 0 else 0.0)
+            heapq.heappush(self.pending, (due, next(self.order), msg))
+
+    def receive(self, timeout: float) -> Envelope | None:
+        deadline = time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            if self.pending and self.pending[0][0] <= now:
+                return heapq.heappop(self.pending)[2]
+            if now >= deadline:
+                return None
+            wait = deadline - now if not self.pending else min(deadline, self.pending[0][0]) - now
+            msg = self.inner.receive(timeout=wait)
+            if msg is not None:
+                self._admit(msg)
