@@ -1,6 +1,6 @@
 # swarmmap: `make run` sets up and runs the demo, `make test` sets up and runs the tests (unit and
 # end to end), `make test-deploy` the deploy tier (real Docker engine and SLURM cluster, set up
-# from ../shared/kit; needs root).
+# from ../shared/kit; needs root), `make test-faults` the fault trials (learners killed at random rounds).
 PYTHON ?= python3
 VENV ?= .venv
 # The torch build to install when the venv has none (CPU-only machines: the 2.13.0 CPU wheel;
@@ -9,7 +9,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 RUN_ARGS ?=
 
-.PHONY: setup run test test-deploy clean
+.PHONY: setup run test test-deploy test-faults clean
 
 $(BIN)/swarmmap: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,7 +23,10 @@ run: setup
 	$(BIN)/swarmmap up --preset demo $(RUN_ARGS)
 
 test: setup
-	$(BIN)/python -m pytest -ra -m "not deploy"
+	$(BIN)/python -m pytest -ra -m "not deploy and not faults"
+
+test-faults: setup
+	$(BIN)/python -m pytest -ra -m faults
 
 test-deploy: setup
 	$(BIN)/python -m pytest -ra -m deploy tests/deploy

@@ -149,7 +149,9 @@ def same_settings(run_dir: Path, cfg: RunConfig) -> bool:
         old = yaml.safe_load((run_dir / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return False
-    new = cfg.model_dump(mode="json")
+    from swarmmap.services.launcher import prepare
+
+    new = prepare(cfg.model_copy(update={"run_dir": run_dir})).model_dump(mode="json")  # as up writes it
     return isinstance(old, dict) and all(old.get(k) == new[k] for k in SAME_RUN)
 
 

@@ -36,6 +36,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
+from swarmmap.services.learner.dinno import state_copies
 from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
@@ -209,9 +210,10 @@ class Observer:
             self.wake.notify()
 
     def check_state(self, msg: State) -> None:
-        """Refuse a State this run's model cannot hold (DSGT's carries its tracker after the parameters)."""
-        if self.n_params and msg.params.shape[0] not in (self.n_params, 2 * self.n_params):
-            raise ProtocolError("shape", f"State.params has {msg.params.shape[0]} values, the model has {self.n_params}")
+        """Refuse a State this run's model cannot hold."""
+        size = state_copies(self.cfg.learner.algorithm) * self.n_params  # DSGT's State carries its tracker too
+        if self.n_params and msg.params.shape[0] != size:
+            raise ProtocolError("shape", f"State.params has {msg.params.shape[0]} values, this run's States have {size}")
 
     # ------------------------------------------------------------------ maps
     def map_state(self, msg: State) -> float:

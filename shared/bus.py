@@ -288,6 +288,9 @@ class Bus:
         return None
 
     def close(self) -> None:
+        if self.dropped:  # what this service refused, in its log for good
+            log.warning("%s-%s refused %d message(s): %s", self.service, self.ident, sum(self.dropped.values()),
+                        ", ".join(f"{n} {reason}" for reason, n in sorted(self.dropped.items())))
         for handle in reversed(self._handles):
             try:
                 handle.undeclare()

@@ -181,6 +181,8 @@ class LearnerSettings(Section):
     max_state_distance: float = Field(
         0.5, gt=0, description="refuse a neighbour's State whose parameters lie farther from this node's own than this "
                                "multiple of their norm (and constant ones, e.g. all zero): defence against a hostile member")
+    rejoin_wait_s: float = Field(10.0, ge=0, description="wait this long for a neighbour whose liveliness token vanished "
+                                                       "(a launcher restarts it) before going on without it")
     silent_after_s: float = Field(30.0, gt=0, description="leave a neighbour out of the round when it has been silent "
                                                          "this long (it is taken back when it sends again)")
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
@@ -318,7 +320,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "lidar": {"samples_per_beam": 8},
         "learner": {"rounds": 60, "primal_iterations": 10, "batch_size": 1024,
                     "model_shape": [2, 128, 64, 64, 1], "lr_start": 1e-2, "lr_finish": 1e-3, "rho_init": 0.03,
-                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 8.0},
+                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 8.0, "checkpoint_every": 5},
     },
     # The default: 7 robots, about ten minutes on two CPU cores, maps that show the rooms.
     "demo": {

@@ -22,6 +22,7 @@ also learns from the prediction loss.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -51,6 +52,37 @@ def make_optimizer(kind: str, params, lr: float) -> torch.optim.Optimizer:
     if kind == "sgd":
         return torch.optim.SGD(params, lr=lr)
     raise ValueError(f"unknown optimizer {kind!r}; allowed: adam, adamw, sgd")
+
+
+class Node(Protocol):
+    """What Algorithm 1 and the services know of a learning rule (DiNNO, DSGD, DSGT): the seam
+    between the exchange and the algorithm, so that nobody else guesses a State's layout."""
+
+    model: torch.nn.Module
+
+    def update(self, k: int, state: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        """NODEUPDATE of round ``k`` given the neighbours' States of that round; the new State."""
+
+    def state(self) -> np.ndarray:
+        """The State this node sends now."""
+
+    def params_of(self, state: np.ndarray) -> np.ndarray:
+        """The model parameters inside a State."""
+
+    def state_size(self) -> int:
+        """Values in a State."""
+
+    def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        """The State to go on from after catching up with the team."""
+
+    def checkpoint(self) -> dict: ...
+
+    def restore(self, doc: dict) -> None: ...
+
+
+def state_copies(algorithm: str) -> int:
+    """How many parameter-sized vectors a State of ``algorithm`` holds (DSGT: theta and its tracker)."""
+    return 2 if algorithm == "dsgt" else 1
 
 
 class LocalNode:
@@ -104,14 +136,14 @@ class LocalNode:
 
     def state_size(self) -> int:
         """Values in a State of this node's kind."""
-        return self.param_count
+        return state_copies(self.s.algorithm) * self.param_count
 
     def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """The state a node that was away starts from when it catches up with its team: the mean
-        of the neighbours' States (its own is stale); link state restarts."""
+        of its own (stale, but the one that knows its data best) and its neighbours' States."""
         if not peers:
             return own
-        return np.mean(np.stack(list(peers.values())), axis=0).astype(np.float32)
+        return np.mean(np.stack([own, *peers.values()]), axis=0).astype(np.float32)
 
     def batch_loss(self) -> torch.Tensor:
         """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
@@ -181,10 +213,6 @@ class DinnoNode(LocalNode):
         sigma = F.softplus(th[rho])[None, :].expand(len(th_reg), -1)
         kl = gaussian_kl(torch.zeros_like(sigma), sigma, 0.0, F.softplus(th_reg[:, rho]))
         return penalty + self.s.w_rho * self.rho * kl.sum()
-
-    def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
-        self.duals.clear()
-        return super().rejoin(own, peers)
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """One DiNNO round for this node given neighbours' parameters of round ``k``."""
@@ -293,8 +321,6 @@ class DsgtNode(LocalNode):
     def state(self) -> np.ndarray:
         return torch.cat([get_flat(self.model), self.y]).cpu().numpy().astype(np.float32)
 
-    def state_size(self) -> int:
-        return 2 * self.param_count  # [theta, y]
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         n, w = self.n, self.weights

@@ -117,7 +117,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                    stats: ExchangeStats | None = None, stop: threading.Event | None = None,
                    peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0,
                    check_state: StateCheck | None = None, silent_after: float = 30.0,
-                   rejoin: Rejoin | None = None, resumed: bool = False) -> np.ndarray:
+                   rejoin: Rejoin | None = None, resumed: bool = False, rejoin_wait: float = 0.0) -> np.ndarray:
     """Run rounds ``start_round .. max_rounds - 1``; return the final state.
 
     ``node_update(round, state, {peer: peer_state})`` is the algorithm (DiNNO's, here); it sees
@@ -128,7 +128,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     returns why); refused States, and States more than ROUNDS_AHEAD rounds ahead, are counted in
     ``stats.refused`` and the round goes on without them.
 
-    Robots come and go. A neighbour whose liveliness token vanished, or that stayed silent for
+    Robots come and go. A neighbour whose liveliness token vanished (and did not come back within
+    ``rejoin_wait`` seconds, the time a launcher needs to restart it), or that stayed silent for
     ``silent_after`` seconds while this node waited on it, is left out: the round finishes with
     the neighbours the node has. It is taken back once it sends a State of the round at hand or
     a later one. A node ``resumed`` from a checkpoint may be behind its team; it catches up:
@@ -145,6 +146,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
     joining = resumed  # may jump ahead to its team's round, until it finishes a round with a neighbour
     heard = dict.fromkeys(neighbours, time.monotonic())
+    lost_since: dict[int, float] = {}
     alone_since: float | None = None
 
     round_state = state  # what State(rnd) carries: the parameters at the start of the round (resent as such)
@@ -204,9 +206,11 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             last_check = now
             # Leave out the neighbours this round waits on that are gone or silent.
             lost = transport.lost_peers()
+            lost_since = {j: lost_since.get(j, now) for j in lost}
             for j in sorted(_still_needed(active, buf, rnd, updated)):
-                if j in lost:
-                    leave_out(j, "left (its liveliness token vanished)")
+                if j in lost and now - lost_since[j] >= rejoin_wait:
+                    leave_out(j, "left (its liveliness token vanished)" + (f" and is not back after {rejoin_wait:.0f} s"
+                                                                            if rejoin_wait else ""))
                 elif now - heard[j] > silent_after:
                     leave_out(j, f"has been silent for {now - heard[j]:.0f} s")
             if neighbours and not active:

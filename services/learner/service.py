@@ -127,7 +127,7 @@ class RobotLearner:
         settings is refused, never loaded."""
         if self.checkpoint_path is None or self.s.checkpoint_every == 0:
             return None
-        for stale in self.checkpoint_path.parent.glob(f".{self.checkpoint_path.name}.*.tmp"):
+        for stale in self.checkpoint_path.parent.glob(f".robot-{self.robot}*.tmp"):
             stale.unlink(missing_ok=True)  # left by a learner killed while writing: the checkpoint itself is whole
         if not self.checkpoint_path.exists():
             return None
@@ -152,21 +152,40 @@ class RobotLearner:
                "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": wall}
         return {k: v + self.before.get(k, 0) for k, v in now.items()}
 
+    @property
+    def data_path(self):
+        return self.checkpoint_path.with_name(f"robot-{self.robot}-data.pt")
+
     def save_checkpoint(self, k: int, theta: np.ndarray) -> None:
-        """Atomically write what round ``k`` starts from."""
+        """Atomically write what round ``k`` starts from. Offline, the training points do not
+        change: they are written once, beside it, so that frequent checkpoints stay small."""
+        doc = {"round": k, "state": torch.from_numpy(theta.copy()), "node": self.node.checkpoint(),
+               "run_id": self.cfg.run_id, "fingerprint": settings_fingerprint(self.cfg), "counters": self.counters()}
+        data = {"points": torch.from_numpy(self.points), "labels": torch.from_numpy(self.labels)}
+        if self.s.data == "online":
+            doc |= data
+        elif k == 0 or not self.data_path.exists():
+            buf = io.BytesIO()
+            torch.save(data | {"fingerprint": settings_fingerprint(self.cfg)}, buf)
+            atomic_write_bytes(self.data_path, buf.getvalue())
         buf = io.BytesIO()
-        torch.save({"round": k, "state": torch.from_numpy(theta.copy()), "node": self.node.checkpoint(),
-                    "points": torch.from_numpy(self.points), "labels": torch.from_numpy(self.labels),
-                    "run_id": self.cfg.run_id, "fingerprint": settings_fingerprint(self.cfg),
-                    "counters": self.counters()}, buf)
+        torch.save(doc, buf)
         atomic_write_bytes(self.checkpoint_path, buf.getvalue())
+
+    def load_data(self, doc: dict) -> None:
+        if "points" not in doc:
+            try:
+                doc = torch.load(self.data_path, map_location="cpu", weights_only=True)
+            except Exception as exc:
+                raise LearnerError(f"robot {self.robot}: cannot read its training points {self.data_path}: {exc}", 2) from None
+        self.points, self.labels = doc["points"].numpy(), doc["labels"].numpy()
 
     def prepare(self, world: WorldMap, stop: threading.Event) -> None:
         """Wait for the end of the traversal (or resume from a checkpoint), then build the node."""
         s, robot = self.s, self.robot
         doc = self.resumable()
         if doc is not None:
-            self.points, self.labels = doc["points"].numpy(), doc["labels"].numpy()
+            self.load_data(doc)
             self.setup(world)
             self.node.restore(doc["node"])
             self.start_round, self.start_state = int(doc["round"]), doc["state"].numpy()
@@ -267,7 +286,7 @@ class RobotLearner:
                                    start_round=self.start_round, stats=self.stats, stop=stop,
                                    peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
                                    check_state=self.check_state, silent_after=s.silent_after_s,
-                                   rejoin=self.node.rejoin, resumed=self.resumed)
+                                   rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))

@@ -1,0 +1,65 @@
+"""Failures are normal: a learner killed (SIGKILL) at a random round is restarted by ``up``,
+resumes from its checkpoint, rejoins its team and the run finishes as a clean run does; 30%
+of Algorithm 1's messages lost changes nothing; a killed launcher leaves no service behind."""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+
+import pytest
+
+from tests.conftest import wait_until
+from tests.harness import final_losses, kill_at_round, leftovers, service_pids, up
+
+pytestmark = pytest.mark.e2e
+
+SMOKE = ["--preset", "smoke", "--robots", "3", "--no-observer"]
+
+
+def test_thirty_percent_of_messages_lost_changes_nothing(tmp_path):
+    clean = up(tmp_path / "clean", *SMOKE)
+    assert clean.wait(300) == 0
+    lossy = up(tmp_path / "lossy", *SMOKE, "--set", "faults.link_success=0.7", "--set", "learner.resend_after_s=0.2")
+    assert lossy.wait(600) == 0
+    assert "injecting faults" in (tmp_path / "lossy" / "logs" / "learner-0.log").read_text()
+    # Algorithm 1 waits for (resent) messages instead of going on without them: the same result.
+    assert final_losses(tmp_path / "lossy") == final_losses(tmp_path / "clean")
+
+
+def test_a_killed_launcher_takes_every_service_with_it(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = up(run_dir, *SMOKE, "--rounds", "100000")
+    assert wait_until(lambda: len(service_pids(run_dir, "learner")) == 3 and (run_dir / "logs").exists(), 120, 0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert wait_until(lambda: not leftovers(run_dir), 30, 0.2), f"left running: {leftovers(run_dir)}"
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize("trial", range(5))
+def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishes(tmp_path_factory, trial):
+    rounds = 200
+    base = tmp_path_factory.getbasetemp() / "kill-trials"
+    clean_dir = base / "clean"
+    if not (clean_dir / "summary.json").exists():  # one clean run for the five trials
+        assert up(clean_dir, *SMOKE, "--rounds", str(rounds)).wait(600) == 0
+    rng = random.Random(trial)
+    robot, at, after = rng.randrange(3), rng.randrange(10, rounds - 40), rng.uniform(0, 1.5)
+    run_dir = base / f"trial-{trial}"
+    proc = up(run_dir, *SMOKE, "--rounds", str(rounds))
+    try:
+        kill_at_round(run_dir, "learner", robot, at, after_s=after)
+        assert proc.wait(600) == 0, (run_dir.parent / f"{run_dir.name}.up.log").read_text()[-3000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and summary["services"][f"learner-{robot}"]["restarts"] == 1
+    log = (run_dir / "logs" / f"learner-{robot}.log").read_text()
+    assert "resuming from" in log and f"robot {robot} done: {rounds} rounds" in log, "the restarted learner did not rejoin"
+    clean = final_losses(clean_dir)
+    for r, loss in final_losses(run_dir).items():
+        assert abs(loss - clean[r]) <= 0.05 * clean[r], f"robot {r}: {loss:.4f} against {clean[r]:.4f} clean (killed {robot} {after:.1f} s after round {at})"
+    assert not leftovers(run_dir), "a service outlived the run"
