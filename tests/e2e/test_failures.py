@@ -61,5 +61,6 @@ def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishe
     assert "resuming from" in log and f"robot {robot} done: {rounds} rounds" in log, "the restarted learner did not rejoin"
     clean = final_losses(clean_dir)
     for r, loss in final_losses(run_dir).items():
-        assert abs(loss - clean[r]) <= 0.05 * clean[r], f"robot {r}: {loss:.4f} against {clean[r]:.4f} clean (killed {robot} {after:.1f} s after round {at})"
+        assert abs(loss - clean[r]) <= 0.05 * clean[r], \
+            f"robot {r}: {loss:.4f} against {clean[r]:.4f} clean (killed {robot} {after:.1f} s after round {at})"
     assert not leftovers(run_dir), "a service outlived the run"
