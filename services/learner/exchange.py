@@ -71,6 +71,7 @@ class ExchangeStats:
     left_out: int = 0  # times a neighbour was left out of a round (gone or silent)
     rejoined: int = 0  # times one came back
     caught_up: int = 0  # times this node jumped ahead to its team's round
+    replayed: int = 0  # States sent again to neighbours that were behind
 
 
 # A State of a round further ahead than this cannot be needed yet (a neighbour is at most one
@@ -117,7 +118,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                    stats: ExchangeStats | None = None, stop: threading.Event | None = None,
                    peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0,
                    check_state: StateCheck | None = None, silent_after: float = 30.0,
-                   rejoin: Rejoin | None = None, resumed: bool = False, rejoin_wait: float = 0.0) -> np.ndarray:
+                   rejoin: Rejoin | None = None, resumed: bool = False, rejoin_wait: float = 0.0,
+                   keep_rounds: int = 0) -> np.ndarray:
     """Run rounds ``start_round .. max_rounds - 1``; return the final state.
 
     ``node_update(round, state, {peer: peer_state})`` is the algorithm (DiNNO's, here); it sees
@@ -132,11 +134,15 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     ``rejoin_wait`` seconds, the time a launcher needs to restart it), or that stayed silent for
     ``silent_after`` seconds while this node waited on it, is left out: the round finishes with
     the neighbours the node has. It is taken back once it sends a State of the round at hand or
-    a later one. A node ``resumed`` from a checkpoint may be behind its team; it catches up:
-    before it has finished a round with a neighbour, a plausible State of a later round makes it
-    jump to that round, starting from ``rejoin(own_state, {peer: state})`` (default: its own
-    state). A node whose neighbours are all left out waits for one to come back, and fails
-    (PeerFailure) when it has had none for ``peer_timeout`` seconds.
+    a later one. A node ``resumed`` from a checkpoint may be behind its team. Each node keeps the
+    States it sent in its last ``keep_rounds`` rounds and, when a neighbour sends a State of an
+    older round, sends them again: the resumed node replays the rounds it lost with exactly the
+    States its neighbours had (and comes back where it would have been). Further behind than
+    that, it jumps: before it has finished a round with a neighbour, a plausible State more than
+    ``keep_rounds`` rounds ahead makes it jump to that round, starting from
+    ``rejoin(own_state, {peer: state})`` (default: its own state). A node whose neighbours are
+    all left out waits for one to come back, and fails (PeerFailure) when it has had none for
+    ``peer_timeout`` seconds.
     """
     stats = stats if stats is not None else ExchangeStats()
     buf = _Rounds()
@@ -150,9 +156,15 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     alone_since: float | None = None
 
     round_state = state  # what State(rnd) carries: the parameters at the start of the round (resent as such)
+    history: dict[int, np.ndarray] = {}  # the States of the last keep_rounds rounds, for neighbours that replay them
+    replayed: dict[tuple[int, int], float] = {}
+    newest: dict[int, int] = {}  # newest round of a State from each neighbour (forgotten when it leaves: it restarts)
 
     def send_state() -> None:
         t0 = time.perf_counter()
+        history[rnd] = round_state
+        for old in [r for r in history if r < rnd - keep_rounds]:
+            del history[old]
         transport.send_state(rnd, round_state)
         stats.send_s += time.perf_counter() - t0
 
@@ -207,6 +219,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             # Leave out the neighbours this round waits on that are gone or silent.
             lost = transport.lost_peers()
             lost_since = {j: lost_since.get(j, now) for j in lost}
+            for j in lost:
+                newest.pop(j, None)
             for j in sorted(_still_needed(active, buf, rnd, updated)):
                 if j in lost and now - lost_since[j] >= rejoin_wait:
                     leave_out(j, "left (its liveliness token vanished)" + (f" and is not back after {rejoin_wait:.0f} s"
@@ -233,7 +247,19 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         now = time.monotonic()
         if msg is not None:
             j = msg.sender
-            if j not in neighbours or msg.round < rnd:
+            if j not in neighbours:
+                continue
+            behind = msg.kind == "state" and msg.round >= newest.get(j, -1)  # not a replay of its own old States
+            if msg.kind == "state":
+                newest[j] = max(newest.get(j, -1), msg.round)
+            if msg.round < rnd:  # a neighbour behind (restarted): send it the States it needs again
+                if behind and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
+                    replayed[(j, msg.round)] = now
+                    log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", node_id, j,
+                             msg.round, msg.round, rnd)
+                    for r in range(msg.round, rnd + 1):
+                        transport.send_state(r, history[r])
+                    stats.replayed += rnd + 1 - msg.round
                 continue
             heard[j] = now
             if msg.kind == "complete":
@@ -242,15 +268,17 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 continue
             if j in buf.states[msg.round]:
                 continue  # the first State of a round counts
-            if msg.round > rnd + ROUNDS_AHEAD and not (joining and not updated and msg.round <= max_rounds):
-                refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
+            jump = joining and not updated and rnd + keep_rounds < msg.round <= max_rounds
+            if msg.round > rnd + ROUNDS_AHEAD and not jump:
+                if not (joining and msg.round <= rnd + keep_rounds):  # (those are the replay's, coming)
+                    refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
                 continue
             # A node catching up holds stale parameters: it cannot judge distances to them.
             why = check_state(msg.params, None if joining and not updated else state) if check_state is not None else None
             if why is not None:
                 refuse(stats, node_id, msg, why, "implausible")
                 continue
-            if joining and not updated and msg.round > rnd:  # the team is ahead: catch up with it
+            if jump:  # the team is too far ahead to replay: catch up with it
                 log.info("node %d: neighbour %d is at round %d; catching up from round %d", node_id, j, msg.round, rnd)
                 buf.states = defaultdict(dict, {r: v for r, v in buf.states.items() if r >= msg.round})
                 buf.complete = defaultdict(set, {r: v for r, v in buf.complete.items() if r >= msg.round})
@@ -312,6 +340,7 @@ class MemoryHub:
         self.delay = delay
         self.queues = {i: queue.Queue() for i in graph}
         self.timers: list[threading.Timer] = []
+        self.lost: set[int] = set()  # nodes that have left (as their liveliness tokens would say)
 
     def transport(self, node: int) -> MemoryTransport:
         return MemoryTransport(self, node)
@@ -350,4 +379,4 @@ class MemoryTransport:
             return None
 
     def lost_peers(self) -> set[int]:
-        return set()
+        return self.hub.lost - {self.node}

@@ -286,7 +286,8 @@ class RobotLearner:
                                    start_round=self.start_round, stats=self.stats, stop=stop,
                                    peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
                                    check_state=self.check_state, silent_after=s.silent_after_s,
-                                   rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s)
+                                   rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s,
+                                   keep_rounds=s.checkpoint_every + 2)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
