@@ -33,6 +33,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
+
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
@@ -270,8 +272,8 @@ class Launcher:
                 else:
                     log.error("the run failed (recorder status %d); see %s", code, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
-            for c in self.children:
-                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0) and c.restarts < self.cfg.up.restarts:
+            for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
+                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0, 2) and c.restarts < self.cfg.up.restarts:
                     self.restart(c)
             if failed_at is None and (bad := self.failed()) is not None:
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
@@ -346,10 +348,32 @@ def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
     return 0
 
 
+def other_run_in(cfg: RunConfig) -> str | None:
+    """Why ``cfg.run_dir`` cannot take this run: it holds one with other settings (its
+    checkpoints would be refused and its outputs overwritten); None when it can."""
+    from swarmmap.services.learner.service import settings_fingerprint
+
+    path = cfg.run_dir / "config.yaml"
+    if not path.exists():
+        return None
+    try:
+        old = RunConfig.model_validate(yaml.safe_load(path.read_text()))
+    except Exception as exc:  # noqa: BLE001 - any unreadable config is named, never overwritten
+        return f"{path} cannot be read ({str(exc).splitlines()[0]})"
+    before, now = settings_fingerprint(old), settings_fingerprint(cfg)
+    if before == now:
+        return None
+    diff = ", ".join(f"{k} {before[k]!r} there, {v!r} here" for k, v in now.items() if before.get(k) != v)
+    return f"{cfg.run_dir} holds a run with other settings ({diff}); choose another --run-dir, or remove it to start afresh"
+
+
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     try:
         launcher = Launcher(cfg, stop)
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
+        return 2
+    if (why := other_run_in(launcher.cfg)) is not None:
+        log.error("refusing to start: %s", why)
         return 2
     return launcher.run()

@@ -27,11 +27,13 @@ def up(run_dir, *extra):
 def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path, model):
     a, b = tmp_path / "a", tmp_path / "b"
     up(a, "--set", f"learner.model={model}")
-    assert sorted(p.name for p in (a / "checkpoints").iterdir()) == ["robot-0.pt", "robot-1.pt", "robot-2.pt"]
+    assert sorted(p.name for p in (a / "checkpoints").iterdir()) == [
+        "robot-0-data.pt", "robot-0.pt", "robot-1-data.pt", "robot-1.pt", "robot-2-data.pt", "robot-2.pt"]
     assert torch.load(a / "checkpoints" / "robot-0.pt", weights_only=True)["round"] == 10
     # B: the run directory as a crash after round 10 would leave it.
     shutil.copytree(a, b)
     shutil.rmtree(b / "models")
+    (b / "checkpoints" / ".robot-1.pt.x1y2.tmp").write_bytes(b"half a checkpoint")  # a learner killed while writing
     before = list(csv.DictReader((b / "metrics.csv").open()))
     up(b, "--set", f"learner.model={model}")
     for robot in range(3):
@@ -43,6 +45,11 @@ def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path, model):
             torch.testing.assert_close(sa[name], sb[name], rtol=0, atol=1e-6)
     after = list(csv.DictReader((b / "metrics.csv").open()))
     assert after[: len(before)] == before and len(after) > len(before)
+    assert not list((b / "checkpoints").glob("*.tmp")), "a leftover .tmp was kept"
+    # The first row after the resume is the resumed model's, not an untrained one's.
+    resumed = [r for r in after[len(before):] if r["robot"] == "0"][0]
+    same_round = [r for r in before if r["robot"] == "0" and r["round"] == resumed["round"]]
+    assert not same_round or abs(float(same_round[0]["val_bce"]) - float(resumed["val_bce"])) < 1e-4
 
 
 def test_unreadable_checkpoint_is_named(tmp_path):
@@ -53,3 +60,15 @@ def test_unreadable_checkpoint_is_named(tmp_path):
                            "--run-dir", str(run)], capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 1
     assert "cannot read checkpoint" in (run / "logs" / "learner-1.log").read_text()
+
+
+def test_checkpoints_of_other_settings_are_refused_and_nothing_is_overwritten(tmp_path):
+    run = tmp_path / "run"
+    up(run)
+    kept = {p: p.read_bytes() for p in (run / "models" / "robot-0.pt", run / "config.yaml", run / "summary.json")}
+    # up refuses at once: nothing of the finished run is touched.
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "20", "--seed", "7",
+                           "--set", "learner.checkpoint_every=10", "--run-dir", str(run)],
+                          capture_output=True, text=True, timeout=600, env=clean_env())
+    assert proc.returncode == 2 and "holds a run with other settings (seed 0 there, 7 here)" in proc.stderr
+    assert all(p.read_bytes() == data for p, data in kept.items()), "the finished run's files were overwritten"
