@@ -21,6 +21,7 @@ Rerun recording and its time per map).
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import os
@@ -51,14 +52,16 @@ FAILURE_GRACE_S = 30.0
 RESTARTABLE = ("learner", "lidar", "world")  # crashed ones are started again, up.restarts times each
 
 
+try:  # looked up here, not in the forked child, where only async-signal-safe work belongs
+    _prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+except (OSError, AttributeError):  # not Linux: Ctrl-C and run/done still stop the services
+    _prctl = None
+
+
 def die_with_parent() -> None:
     """In a child, before exec: get SIGTERM when ``up`` dies (even by SIGKILL), so no service outlives it."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:  # not Linux: Ctrl-C and the process group still stop the services
-        pass
+    if _prctl is not None:
+        _prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
 
 
 def free_port() -> int:
