@@ -178,6 +178,29 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", node_id, j, why, rnd)
 
+    def finish_round() -> bool:
+        """The paper's FINISHROUND: once the node has updated and every neighbour of the round is
+        complete, or one has moved on (its State of the next round is here), go to the next
+        round and send its State. Returns whether it did."""
+        nonlocal rnd, updated, joining, round_state
+        moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
+        if not (updated and (active <= buf.complete[rnd] or moved_on)):
+            return False
+        joining = joining and not active
+        buf.states.pop(rnd, None)
+        buf.complete.pop(rnd, None)
+        rnd += 1
+        updated = False
+        stats.rounds_done += 1
+        if returning:
+            log.info("node %d: neighbour(s) %s back from round %d", node_id, sorted(returning), rnd)
+            active.update(returning)
+            stats.rejoined += len(returning)
+            returning.clear()
+        round_state = state
+        send_state()
+        return True
+
     send_state()
     last_resend = last_check = time.monotonic()
     while rnd < max_rounds:
@@ -193,21 +216,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 updated = True
                 send_complete()
                 progressed = True
-            moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
-            if updated and (active <= buf.complete[rnd] or moved_on):
-                joining = joining and not active
-                buf.states.pop(rnd, None)
-                buf.complete.pop(rnd, None)
-                rnd += 1
-                updated = False
-                stats.rounds_done += 1
-                if returning:
-                    log.info("node %d: neighbour(s) %s back from round %d", node_id, sorted(returning), rnd)
-                    active |= returning
-                    stats.rejoined += len(returning)
-                    returning.clear()
-                round_state = state
-                send_state()
+            if finish_round():
                 progressed = True
             if progressed:
                 last_resend = time.monotonic()
