@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,16 +19,11 @@ from swarmmap.shared.models import model_from_settings, param_count
 from swarmmap.shared.protocol import Keys, State, Tensor
 from swarmmap.shared.secrets import write_secrets
 from tests.conftest import SWARMMAP, clean_env, wait_until
+from tests.harness import final_losses
 
 pytestmark = pytest.mark.e2e
 
 ARGS = ["up", "--preset", "smoke", "--robots", "3", "--rounds", "40", "--no-observer"]
-
-
-def final_losses(run_dir: Path) -> dict[str, float]:
-    summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["ok"], summary
-    return {r: v["final_val_bce"] for r, v in summary["learners"].items()}
 
 
 def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
@@ -68,8 +62,9 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert final_losses(run_dir) == final_losses(tmp_path / "clean"), "the hostile States changed the result"
     summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"], summary
+    assert final_losses(run_dir) == final_losses(tmp_path / "clean"), "the hostile States changed the result"
     # Learner 1's neighbours refused its zero States; nobody ever saw learner 2's forged ones
     # (the router dropped them), so learner 2's own neighbours refused only learner 1's.
     assert summary["learners"]["0"]["refused"] > 0 and summary["learners"]["2"]["refused"] > 0
