@@ -79,6 +79,16 @@ def test_run_directory_is_complete_and_maps_show_the_plan(smoke_run):
         assert observed_agreement(run_dir, robot) > 0.8
 
 
+def metric_rows(run_dir: Path) -> list[dict]:
+    """The complete rows of metrics.csv (the file may be mid-write while the run goes on)."""
+    path = run_dir / "metrics.csv"
+    if not path.exists():
+        return []
+    lines = path.read_text().splitlines(keepends=True)
+    complete = [line for line in lines if line.endswith("\n")]
+    return list(csv.DictReader(complete))
+
+
 def start_up(run_dir: Path, rounds: int) -> subprocess.Popen:
     return subprocess.Popen([*SWARMMAP, "up", "--preset", "smoke", "--rounds", str(rounds), "--run-dir",
                              str(run_dir)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -101,6 +111,9 @@ def test_status_lists_live_services_and_ctrl_c_stops_everything(tmp_path):
 
         assert wait_until(status_shows_learners, 120, interval=0.5), out["text"]
         assert "lidar" in out["text"] and "router" in out["text"] and "world" in out["text"]
+        # A State travels before the round's Metrics are recorded: interrupt once rows are on disk.
+        assert wait_until(lambda: metric_rows(run_dir), 120, interval=0.5), "no Metrics were recorded"
+        before = metric_rows(run_dir)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 130
     finally:
@@ -111,5 +124,5 @@ def test_status_lists_live_services_and_ctrl_c_stops_everything(tmp_path):
         assert service["exit_code"] is not None, f"{name} was left running"
         with pytest.raises(ProcessLookupError):
             os.kill(service["pid"], 0)
-    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
-    assert rows, "metrics written before the interrupt were lost"
+    after = metric_rows(run_dir)
+    assert after[: len(before)] == before, "metrics written before the interrupt were lost"
