@@ -39,7 +39,7 @@ import torch
 from swarmmap.services.learner.dinno import state_copies
 from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.bnn import BayesNet, predict_mean_std
+from swarmmap.shared.bnn import BayesNet, fast_bf16, predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
@@ -116,6 +116,8 @@ class Observer:
         self.cfg, self.rec, self.device = cfg, rec, device
         self.s = cfg.observer
         self.map_every = self.s.map_every or cfg.learner.eval_every
+        bf16 = self.s.map_dtype == "bf16" or (self.s.map_dtype == "auto" and fast_bf16(device or "cpu"))
+        self.map_dtype = torch.bfloat16 if bf16 else torch.float32
         self.lock = threading.Lock()
         self.wake = threading.Condition(self.lock)
         self.newest: dict[int, State] = {}  # newest unmapped State per learner
@@ -221,7 +223,8 @@ class Observer:
         t0 = time.perf_counter()
         flat = torch.from_numpy(msg.params.numpy()[: self.n_params].copy()).to(self.device)
         set_flat(self.model, flat)
-        mean, std = predict_mean_std(self.model, self.points, samples=self.s.mc_samples, seed=msg.round)
+        mean, std = predict_mean_std(self.model, self.points, samples=self.s.mc_samples, seed=msg.round,
+                                     dtype=self.map_dtype)
         h, w = self.shape
         self.rec.set_time("round", sequence=msg.round)
         self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), "gray_r", 1.0)))
@@ -261,7 +264,8 @@ class Observer:
 
     def report(self) -> dict:
         t = np.array(self.map_times) if self.map_times else np.zeros(1)
-        return {"maps": len(self.map_times), "states_received": self.states_in, "states_skipped": self.skipped,
+        return {"maps": len(self.map_times), "map_dtype": str(self.map_dtype).removeprefix("torch."),
+                "states_received": self.states_in, "states_skipped": self.skipped,
                 "map_time_mean_s": round(float(t.mean()), 4), "map_time_max_s": round(float(t.max()), 4),
                 "last_round_mapped": self.mapped_round}
 

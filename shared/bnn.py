@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -108,26 +109,132 @@ def is_rho(name: str) -> bool:
     return name.endswith("_rho")
 
 
+def fast_bf16(device: torch.device | str) -> bool:
+    """Whether ``device`` multiplies bfloat16 matrices in hardware (a CUDA GPU with bf16, or a CPU
+    with AMX or AVX512-BF16); elsewhere bf16 is emulated and slower than fp32."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    if device.type != "cpu":
+        return False
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "amx_bf16" in flags or "avx512_bf16" in flags
+
+
+def sample_weights(layer: BayesLinear, samples: int, generator: torch.Generator | None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``samples`` draws of the layer's weights, transposed for ``x @ W`` (S, in, out), and of its
+    biases (S, 1, out), by the same reparameterisation as :meth:`BayesLinear.forward`."""
+    def draw(mu: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+        shape = (samples, *mu.shape)
+        if generator is None:
+            eps = torch.randn(shape, device=mu.device)
+        else:
+            eps = torch.randn(shape, generator=generator, device=generator.device).to(mu.device)
+        return mu + F.softplus(rho) * eps
+
+    w = draw(layer.weight_mu, layer.weight_rho).transpose(1, 2).contiguous()
+    b = draw(layer.bias_mu, layer.bias_rho).unsqueeze(1)
+    return w, b
+
+
+class MapPlan:
+    """The S-pass evaluation of a :class:`BayesNet`, laid out for batched matrix products.
+
+    The layers before the first Bayesian one (the SIREN layer) are deterministic: they run once
+    per point, not once per pass. Each Bayesian layer's S weight draws are sampled once for the
+    whole map and applied to all passes together with one batched product (``baddbmm``) per
+    chunk of points, into two reused activation buffers; ReLUs run in place. A chunk of
+    ``points_per_chunk`` points keeps the (S, chunk, width) activations inside the CPU's caches.
+    """
+
+    def __init__(self, model: BayesNet, samples: int, generator: torch.Generator | None, dtype: torch.dtype):
+        layers = list(model.seq)
+        first = next(i for i, m in enumerate(layers) if isinstance(m, BayesLinear))
+        self.model = model
+        self.head = nn.Sequential(*layers[:first])
+        self.samples = samples
+        self.dtype = dtype
+        self.steps: list[tuple[str, object]] = []
+        for m in layers[first:]:
+            if isinstance(m, BayesLinear):
+                w, b = sample_weights(m, samples, generator)
+                self.steps.append(("bayes", (w.to(dtype), b.to(dtype))))
+            elif isinstance(m, nn.ReLU):
+                self.steps.append(("relu", None))
+            elif isinstance(m, nn.Linear):
+                self.steps.append(("linear", (m.weight.t().to(dtype), None if m.bias is None else m.bias.to(dtype))))
+            else:
+                self.steps.append(("module", m))
+        self.widths = [w.shape[-1] for kind, wb in self.steps if kind == "bayes" for w in wb[:1]]
+
+    def logits(self, xy: torch.Tensor) -> torch.Tensor:
+        """Pre-sigmoid outputs (S, N) of every pass for points ``xy`` (N, 2)."""
+        h = self.head(xy - self.model.centre).to(self.dtype)  # (N, h1), shared by every pass
+        n, widest = h.shape[0], max(self.widths)
+        bufs = [torch.empty(self.samples * n * widest, dtype=self.dtype, device=h.device) for _ in range(2)]
+        which = 0
+        for kind, arg in self.steps:
+            if kind == "bayes":
+                w, b = arg
+                out = bufs[which][: self.samples * n * w.shape[-1]].view(self.samples, n, w.shape[-1])
+                which ^= 1
+                if h.dim() == 2:  # the first Bayesian layer: one input for every pass
+                    h = h.unsqueeze(0).expand(self.samples, -1, -1)
+                torch.baddbmm(b, h, w, out=out)
+                h = out
+            elif kind == "relu":
+                h = h.relu_()
+            elif kind == "linear":
+                w, b = arg
+                h = torch.matmul(h, w) if b is None else torch.matmul(h, w) + b
+            else:
+                h = arg(h)
+        return h.squeeze(-1).float()
+
+
 @torch.no_grad()
 def predict_mean_std(model: nn.Module, points: np.ndarray, samples: int = 50, batch: int = 8192,
-                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard deviation (N,) of the occupancy over ``samples`` stochastic passes,
-    computed in batches of points so that a whole map grid fits in memory. A deterministic
-    model gives its output and zero spread."""
+                     seed: int = 0, points_per_chunk: int | None = None, sample_chunk: int = 64,
+                     dtype: torch.dtype = torch.float32) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation (N,) of the occupancy over ``samples`` stochastic passes
+    (float32 numpy arrays). A deterministic model gives its output and zero spread.
+
+    Weights are drawn once per pass for the whole map, from a generator seeded ``seed``, so the
+    result does not depend on how the points are chunked. The passes run together in groups of
+    ``sample_chunk`` (memory for their weights stays bounded at any ``samples``) over chunks of
+    points (``points_per_chunk``, by default sized so one group's activations take about 8 MB;
+    ``batch`` caps it). ``dtype=torch.bfloat16`` runs the products in bf16 where
+    :func:`fast_bf16` says the hardware has it; means and spreads are accumulated in float64."""
     device = next(model.parameters()).device
-    bayesian = isinstance(model, BayesNet)
-    with model.noise(seed) if bayesian else contextlib.nullcontext():
-        means, stds = [], []
-        for s in range(0, len(points), batch):
-            xy = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=device)
-            if bayesian:
-                draws = torch.stack([model(xy) for _ in range(samples)])
-                means.append(draws.mean(0).cpu().numpy())
-                stds.append(draws.std(0, unbiased=False).cpu().numpy())
-            else:
-                out = model(xy).cpu().numpy()
-                means.append(out)
-                stds.append(np.zeros_like(out))
-    if not means:
-        return np.zeros(0, np.float32), np.zeros(0, np.float32)
-    return np.concatenate(means), np.concatenate(stds)
+    if not isinstance(model, BayesNet) or not model.bayes_layers():
+        out = _predict_deterministic(model, points, batch, device)
+        return out, np.zeros_like(out)
+    generator = torch.Generator(device=device).manual_seed(seed)
+    total = torch.zeros(len(points), dtype=torch.float64, device=device)
+    squares = torch.zeros(len(points), dtype=torch.float64, device=device)
+    done = 0
+    while done < samples:
+        group = min(sample_chunk, samples - done)
+        plan = MapPlan(model, group, generator, dtype)
+        chunk = points_per_chunk or max(16, min(batch, (8 << 20) // (4 * group * max(plan.widths))))
+        for s in range(0, len(points), chunk):
+            xy = torch.as_tensor(points[s : s + chunk], dtype=torch.float32, device=device)
+            p = torch.sigmoid(plan.logits(xy)).double()
+            total[s : s + chunk] += p.sum(0)
+            squares[s : s + chunk] += (p * p).sum(0)
+        done += group
+    mean = total / samples
+    std = (squares / samples - mean * mean).clamp_min(0).sqrt()
+    return mean.float().cpu().numpy(), std.float().cpu().numpy()
+
+
+def _predict_deterministic(model: nn.Module, points: np.ndarray, batch: int, device: torch.device) -> np.ndarray:
+    out = []
+    for s in range(0, len(points), batch):
+        xy = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=device)
+        out.append(model(xy).float().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros(0, np.float32)

@@ -220,6 +220,9 @@ class ObserverSettings(Section):
     grpc_port: int = Field(9876, ge=0, le=65535, description="serve_web: port of the gRPC server the page connects to")
     torch_threads: int = Field(1, ge=1, description="CPU threads for map evaluation")
     device: str = Field("auto", description="torch device for map evaluation: auto (cuda when available), cpu, cuda ...")
+    map_dtype: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="precision of the map products: auto (bf16 where the device multiplies it in hardware: "
+                            "a GPU, a CPU with AMX or AVX512-BF16; fp32 elsewhere), fp32 or bf16")
 
 
 class RecorderSettings(Section):

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from swarmmap.shared.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std
+from swarmmap.shared.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std, sample_weights
 from swarmmap.shared.models import build_model, load_model, save_model
 
 
@@ -60,3 +60,26 @@ def test_mean_and_std_from_many_passes_in_batches(tmp_path):
     np.testing.assert_array_equal(predict_mean_std(back, pts, samples=5)[0], predict_mean_std(net, pts, samples=5)[0])
     det = build_model([2, 32, 32, 1], 5.0, (0, 0, 4, 4), seed=1)
     assert (predict_mean_std(det, pts)[1] == 0).all()
+
+
+def test_batched_passes_equal_one_forward_pass_per_weight_draw():
+    """The batched map evaluation (sampled weights stacked, SIREN layer shared) gives what S
+    ordinary forward passes with the same weight draws give, at any chunking."""
+    net = build_model([2, 16, 24, 8, 1], 5.0, (0, 0, 4, 4), seed=3, kind="bnn", rho_init=-1.5)
+    pts = np.random.default_rng(1).uniform(0, 4, size=(300, 2))
+    mean, std = predict_mean_std(net, pts, samples=7, seed=11, points_per_chunk=37, sample_chunk=3)
+    generator = torch.Generator().manual_seed(11)
+    draws = []
+    for group in (3, 3, 1):  # the passes are drawn per group of sample_chunk, layer by layer
+        layers = [sample_weights(layer, group, generator) for layer in net.bayes_layers()]
+        for s in range(group):
+            h = net.seq[0](torch.as_tensor(pts, dtype=torch.float32) - net.centre)
+            for w, b in layers:
+                h = torch.relu(h @ w[s] + b[s])
+            draws.append(torch.sigmoid(net.seq[-1](h)).squeeze(-1))
+    draws = torch.stack(draws).double().detach()
+    np.testing.assert_allclose(mean, draws.mean(0).numpy(), atol=1e-6)
+    np.testing.assert_allclose(std, draws.std(0, unbiased=False).numpy(), atol=1e-5)
+    again = predict_mean_std(net, pts, samples=7, seed=11, sample_chunk=3)
+    np.testing.assert_allclose(again[0], mean, atol=1e-6)
+    assert std.max() > 0.01, "the draws should disagree at rho -1.5"
