@@ -38,7 +38,7 @@ from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, Samples, State, Tensor, WorldMap
+from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap, encode_state
 
 log = logging.getLogger("learner")
 
@@ -247,7 +247,7 @@ class RobotLearner:
                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final)
         self.metrics_pub.put(msg)
         if self.state_pub is not None:
-            self.state_pub.put(State(run=self.cfg.run_id, sender=self.robot, round=k, params=Tensor.of(theta, "<f4")))
+            self.state_pub.put_bytes(encode_state(self.cfg.run_id, self.robot, k, theta))
         return msg
 
     def refused(self) -> int:

@@ -15,7 +15,7 @@ import numpy as np
 
 from swarmmap.services.learner.exchange import Envelope
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, Tensor
+from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, encode_state
 
 
 class ZenohTransport:
@@ -53,7 +53,7 @@ class ZenohTransport:
         self.inbox.put(Envelope("complete", msg.sender, msg.round))
 
     def send_state(self, round: int, params: np.ndarray) -> None:
-        self.state_pub.put(State(run=self.run, sender=self.node, round=round, params=Tensor.of(params, "<f4")))
+        self.state_pub.put_bytes(encode_state(self.run, self.node, round, params))
 
     def send_round_complete(self, round: int) -> None:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))

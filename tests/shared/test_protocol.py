@@ -18,6 +18,7 @@ from swarmmap.shared.protocol import (
     WorldMap,
     decode,
     encode,
+    encode_state,
 )
 
 RUN = "run-1"
@@ -147,3 +148,47 @@ def test_keys_are_built_under_prefix_and_run_and_refuse_wildcards():
     for bad in ("a/b", "*", "$x", "**", ""):
         with pytest.raises(ValueError):
             Keys("swarmmap", bad)
+
+
+@pytest.mark.parametrize("n", [0, 3, 70, 20000, 527361])
+def test_state_fast_path_writes_and_reads_what_the_generic_codec_does(n):
+    """Algorithm 1's hot path: encode_state is encode(State(...)) byte for byte, and decode takes
+    it back without a copy, with the same fields and values."""
+    params = np.random.default_rng(n).standard_normal(n).astype(np.float32)
+    payload = encode_state("run-1", 3, 17, params)
+    assert payload == encode(State(run="run-1", sender=3, round=17, params=Tensor.of(params, "<f4")))
+    msg = decode(payload, State, run="run-1", sender=3)
+    assert (msg.sender, msg.round, msg.params.shape) == (3, 17, [n])
+    np.testing.assert_array_equal(msg.params.numpy(), params)
+    assert encode(msg) == payload, "a decoded State must encode back to the same bytes"
+
+
+def test_state_fast_path_refuses_what_the_generic_codec_refuses():
+    params = np.ones(100, np.float32)
+    good = encode_state("run-1", 3, 17, params)
+    with pytest.raises(ProtocolError) as err:
+        decode(good, State, run="run-2", sender=3)
+    assert err.value.reason == "wrong-run"
+    with pytest.raises(ProtocolError) as err:
+        decode(good, State, run="run-1", sender=4)
+    assert err.value.reason == "unknown-sender"
+    bad = params.copy()
+    bad[57] = np.nan
+    with pytest.raises(ProtocolError) as err:
+        decode(encode_state("run-1", 3, 17, bad), State, run="run-1", sender=3)
+    assert err.value.reason == "non-finite"
+    for cut in (1, 4, 399):  # truncated: the vector's length no longer matches its header
+        with pytest.raises(ProtocolError):
+            decode(good[:-cut], State, run="run-1", sender=3)
+    with pytest.raises(ProtocolError):  # bytes appended after the vector
+        decode(good + b"\x00\x00\x00\x00", State, run="run-1", sender=3)
+    with pytest.raises(ProtocolError):  # the length field says more than is there
+        decode(good.replace(b"\xc5\x01\x90", b"\xc5\x01\x94"), State, run="run-1", sender=3)
+    with pytest.raises(ValueError):
+        encode_state("bad run name", 3, 17, params)
+
+
+def test_state_fast_path_takes_huge_finite_values_through_the_full_check():
+    params = np.full(10, 3e38, np.float32)  # finite, but its dot product overflows
+    msg = decode(encode_state("run-1", 0, 1, params), State, run="run-1", sender=0)
+    np.testing.assert_array_equal(msg.params.numpy(), params)

@@ -1,0 +1,172 @@
+"""Algorithm 1's State exchange through the project's Bus and codec against raw Zenoh.
+
+    python bench/exchange.py [--trips 200] [--sizes dinno,paper]
+
+Two real processes on loopback (Zenoh peers, TCP, no TLS for both paths so that only the
+project's own layers differ). The bench process is learner 0; a second process, started
+with ``--role echo``, is learner 1. For each State size (DiNNO's FourierNet, 25,601 values,
+102 kB; the paper's BNN with mu and rho, 527,361 values, 2.1 MB):
+
+- project: learner 0 sends a State with :class:`ZenohTransport` (``Tensor`` + ``State`` +
+  msgpack, a declared publisher); learner 1 receives it as Algorithm 1 does (decode, validate,
+  shape check, an ``Envelope`` with its own float32 vector) and sends it back the same way;
+- raw: the same bytes with a bare ``session.put`` and a subscriber that takes them out of
+  Zenoh (``payload.to_bytes()``) and puts them back.
+
+One-way time is half the median round trip. Serialisation is the encode + decode time of one
+State, measured in the bench process, as a share of the project's one-way time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import socket
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+import zenoh
+
+from swarmmap.services.learner.zenoh_transport import ZenohTransport
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.config import ZenohSettings
+from swarmmap.shared.models import build_model, param_count
+from swarmmap.shared.protocol import Keys, ProtocolError, State, decode, encode_state
+
+RUN = "bench-exchange"
+SIZES = {
+    "dinno": ("DiNNO FourierNet", [2, 256, 64, 64, 64, 1], "fourier"),
+    "paper": ("paper BNN", [2, 256, 256, 256, 256, 256, 1], "bnn"),
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def settings(listen: str | None, connect: str | None) -> ZenohSettings:
+    return ZenohSettings(mode="peer", listen=[listen] if listen else ["tcp/127.0.0.1:0"],
+                         connect=[connect] if connect else [], multicast_scouting=False, insecure=True)
+
+
+def values(size: str) -> int:
+    _, shape, kind = SIZES[size]
+    return param_count(build_model(shape, 5.0, (0.0, 0.0, 1.0, 1.0), 0, kind))
+
+
+class Transport(ZenohTransport):
+    """A learner's Algorithm 1 transport (:class:`ZenohTransport`'s send and receive paths) that
+    takes States of each size this bench sends, with the same shape check."""
+
+    def __init__(self, bus: Bus, node: int, peer: int, sizes: set[int]):
+        self.bus, self.node, self.run = bus, node, bus.keys.run
+        self.inbox = queue.Queue()
+        self.state_pub = bus.publisher(bus.keys.state(node))
+        self.complete_pub = bus.publisher(bus.keys.round_complete(node))
+
+        def check(msg: State) -> None:
+            if msg.params.shape[0] not in sizes:
+                raise ProtocolError("shape", f"State.params has shape {msg.params.shape}")
+
+        bus.subscribe(bus.keys.state(peer), State, self._on_state, check=check)
+
+
+def echo(endpoint: str, sizes: list[str]) -> None:
+    """Learner 1: send back every State (through the project's transport) and every raw payload."""
+    bus = Bus.open(settings(None, endpoint), Keys("swarmmap", RUN), "learner", 1)
+    raw_back = bus.session.declare_publisher("bench/raw/back", congestion_control=zenoh.CongestionControl.BLOCK)
+    bus.session.declare_subscriber("bench/raw/out", lambda s: raw_back.put(s.payload.to_bytes()))
+    transport = Transport(bus, 1, 0, {values(size) for size in sizes})
+    bus.announce()
+    print("ready", flush=True)
+    while True:  # until the bench terminates this process
+        env = transport.receive(1.0)
+        if env is not None:
+            transport.send_state(env.round, env.params)
+
+
+def median_trip(send, receive, trips: int) -> float:
+    times = []
+    for r in range(trips + 5):
+        t = time.perf_counter()
+        send(r)
+        receive()
+        if r >= 5:  # warm-up trips
+            times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def serialisation(n: int, reps: int = 50) -> tuple[float, float]:
+    """Seconds to encode one State as the transport sends it, and to decode it into the
+    receiver's own float32 vector (validated) as the transport receives it."""
+    params = np.random.default_rng(0).standard_normal(n).astype(np.float32)
+    t = time.perf_counter()
+    for _ in range(reps):
+        payload = encode_state(RUN, 0, 1, params)
+    enc = (time.perf_counter() - t) / reps
+    t = time.perf_counter()
+    for _ in range(reps):
+        decode(payload, State, run=RUN, sender=0).params.numpy().copy()
+    return enc, (time.perf_counter() - t) / reps
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trips", type=int, default=200)
+    ap.add_argument("--sizes", default="dinno,paper")
+    ap.add_argument("--role", default="bench", choices=["bench", "echo"])
+    ap.add_argument("--endpoint", default=None)
+    args = ap.parse_args()
+    sizes = args.sizes.split(",")
+    if args.role == "echo":
+        echo(args.endpoint, sizes)
+        return
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = Keys("swarmmap", RUN)
+    bus = Bus.open(settings(endpoint, None), keys, "learner", 0)
+    peer = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--endpoint", endpoint, "--sizes", args.sizes],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert peer.stdout.readline().strip() == "ready", "the echo process did not start"
+        deadline = time.monotonic() + 20
+        while ("learner", "1") not in bus.alive("learner"):
+            if time.monotonic() > deadline:
+                raise SystemExit("the echo process never joined")
+            time.sleep(0.1)
+        raw_in: queue.Queue[bytes] = queue.Queue()
+        bus.session.declare_subscriber("bench/raw/back", lambda s: raw_in.put(s.payload.to_bytes()))
+        raw_out = bus.session.declare_publisher("bench/raw/out", congestion_control=zenoh.CongestionControl.BLOCK)
+        results = {}
+        transport = Transport(bus, 0, 1, {values(size) for size in sizes})
+        for size in sizes:
+            label = SIZES[size][0]
+            n = values(size)
+            params = np.random.default_rng(1).standard_normal(n).astype(np.float32)
+            payload = encode_state(RUN, 0, 1, params)
+
+            def receive_state() -> None:
+                if transport.receive(10.0) is None:
+                    raise SystemExit("a State was lost")
+
+            project = median_trip(lambda r: transport.send_state(r, params), receive_state, args.trips) / 2
+            raw = median_trip(lambda r: raw_out.put(payload), lambda: raw_in.get(timeout=10), args.trips) / 2
+            enc, dec = serialisation(n)
+            results[size] = {"bytes": len(payload), "project_s": project, "raw_s": raw, "encode_s": enc, "decode_s": dec}
+            print(f"State exchange, {label} size {len(payload) / 1e6:.2f} MB: {project * 1e3:.2f} ms one-way, "
+                  f"{project / raw:.2f}x raw Zenoh ({raw * 1e3:.2f} ms), serialisation {100 * (enc + dec) / project:.0f}% "
+                  f"(encode {enc * 1e3:.2f} ms, decode {dec * 1e3:.2f} ms)", flush=True)
+        print(json.dumps(results))
+    finally:
+        peer.terminate()
+        peer.wait(10)
+        bus.close()
+
+
+if __name__ == "__main__":
+    main()
