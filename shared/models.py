@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from swarmmap.shared.atomic import atomic_write_bytes
@@ -32,7 +33,9 @@ class SirenLayer(nn.Module):
             self.linear.weight.uniform_(-bound, bound)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sin(self.scale * self.linear(x))
+        # scale * (W x + b) with the scale folded into the (tiny) weights: the same function and
+        # gradients, without two passes over the (points x width) activations.
+        return torch.sin(F.linear(x, self.linear.weight * self.scale, self.linear.bias * self.scale))
 
 
 class FourierNet(nn.Module):

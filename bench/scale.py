@@ -1,0 +1,135 @@
+"""How round time and memory grow with the team: 2 to 32 learner processes, work per learner held.
+
+    python bench/scale.py [--teams 2,4,8,16,32] [--rounds 30] [--graph ring]
+
+For each team size N it runs ``swarmmap up`` (smoke plan, every learner its own process over
+Zenoh, no observer) with a tiny model and the same work per learner: batch, primal
+iterations and a fixed-degree graph (``ring``: two neighbours each, so that a learner's
+exchange does not grow with N; ``--graph complete`` shows the all-to-all cost). It samples
+the resident memory of every process of the run (``/proc``, every 0.25 s) and reads the
+learners' Metrics. Printed per N: seconds a round, seconds a round per learner (on a fixed
+number of cores the team's round time should grow linearly with N: this is its ratio to
+the 2-learner team's), peak resident memory of a learner, and of the whole run (every
+service). ``--robots-per-room`` is not needed: the smoke plan's paths are shared out however
+many robots there are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+
+def children(pid: int) -> set[int]:
+    """Every live descendant of ``pid``."""
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
+        except OSError:
+            continue
+        for k in map(int, kids):
+            if k not in out:
+                out.add(k)
+                todo.append(k)
+    return out
+
+
+def rss_kib(pid: int) -> tuple[str, int]:
+    """(command line, resident KiB) of ``pid``; ('', 0) when it is gone."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return cmd, int(line.split()[1])
+    except OSError:
+        pass
+    return "", 0
+
+
+class MemorySampler(threading.Thread):
+    """Peak resident memory per learner process and of the whole process tree of a run."""
+
+    def __init__(self, root: int, every: float = 0.25):
+        super().__init__(daemon=True)
+        self.root, self.every = root, every
+        self.learner_peak: dict[int, int] = {}
+        self.total_peak = 0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            total = 0
+            for pid in children(self.root) | {self.root}:
+                cmd, kib = rss_kib(pid)
+                total += kib
+                if " learner" in cmd:
+                    self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
+            self.total_peak = max(self.total_peak, total)
+            self.stop.wait(self.every)
+
+
+def round_time(run_dir: Path) -> float:
+    """Mean over learners of seconds a round between their first and last Metrics."""
+    per: dict[str, list[dict]] = {}
+    for r in csv.DictReader((run_dir / "metrics.csv").open()):
+        per.setdefault(r["robot"], []).append(r)
+    times = []
+    for mine in per.values():
+        mine.sort(key=lambda r: int(r["round"]))
+        n = int(mine[-1]["round"]) - int(mine[0]["round"])
+        if n > 0:
+            times.append((float(mine[-1]["wall_time_s"]) - float(mine[0]["wall_time_s"])) / n)
+    return sum(times) / len(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--teams", default="2,4,8,16,32")
+    ap.add_argument("--rounds", type=int, default=30)
+    ap.add_argument("--graph", default="ring", choices=["ring", "complete"])
+    ap.add_argument("--shape", default="2,32,32,1", help="the tiny model's layer widths")
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--keep", type=Path, default=None, help="keep the run directories here")
+    args = ap.parse_args()
+    base = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
+    first = None
+    for n in [int(v) for v in args.teams.split(",")]:
+        run_dir = base / f"team-{n}"
+        cmd = [sys.executable, "-m", "swarmmap.services.cli", "up", "--preset", "smoke", "--robots", str(n),
+               "--rounds", str(args.rounds), "--no-observer", "--run-dir", str(run_dir),
+               "--set", f"learner.graph={args.graph}", "--set", f"learner.model_shape=[{args.shape}]",
+               "--set", f"learner.batch_size={args.batch}", "--set", f"learner.eval_every={args.rounds}",
+               "--set", "learner.checkpoint_every=0"]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                env=os.environ | {"OMP_NUM_THREADS": "1"})
+        sampler = MemorySampler(proc.pid)
+        sampler.start()
+        _, err = proc.communicate()
+        sampler.stop.set()
+        sampler.join()
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(f"team of {n}: swarmmap up failed ({proc.returncode}): {err[-1500:]}", flush=True)
+            continue
+        rt = round_time(run_dir)
+        per_learner = rt / n
+        first = first or per_learner
+        peaks = list(sampler.learner_peak.values()) or [0]
+        print(f"team of {n} learners, tiny model {args.shape}, {args.graph} graph: {rt:.3f} s a round, "
+              f"{per_learner * 1e3:.1f} ms a round per learner ({per_learner / first:.2f}x linear from the first team), "
+              f"learner peak memory {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
+              f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak, {wall:.0f} s wall", flush=True)
+
+
+if __name__ == "__main__":
+    main()
