@@ -26,6 +26,8 @@ import torch
 import yaml
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from procmem import MemorySampler, growth  # noqa: E402
 
 
 def peak(threads: int) -> float:
@@ -79,10 +81,15 @@ def main() -> None:
     for item in args.set:
         cmd += ["--set", item]
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    sampler = MemorySampler(proc.pid)
+    sampler.start()
+    _, err = proc.communicate()
+    sampler.stop.set()
+    sampler.join()
     wall = time.perf_counter() - t0
-    if done.returncode != 0:
-        sys.exit(f"swarmmap up failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    if proc.returncode != 0:
+        sys.exit(f"swarmmap up failed ({proc.returncode}):\n{err[-3000:]}")
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     s = cfg["learner"]
     robots = cfg["robots"]
@@ -106,13 +113,19 @@ def main() -> None:
     one, every = peak(threads), peak(torch.get_num_threads())
     floor_one = flops / one
     floor_team = robots * flops / every
+    share = min(1.0, torch.get_num_threads() / (robots * threads))  # of a core, while every learner computes
     label = f"{args.preset} preset round, {robots} learners over Zenoh on {torch.get_num_threads()} cores"
     print(f"{label}: {mean['round']:.3f} s a round; per learner compute {mean['compute']:.3f} s, "
           f"wait {mean['wait']:.3f} s, send {mean['send']:.4f} s (run {wall:.0f} s, traversal included)")
     print(f"{label}, FLOP floor: team {floor_team:.3f} s a round at the {torch.get_num_threads()}-core fp32 peak "
           f"({every / 1e9:.0f} GFLOPS), round time {mean['round'] / floor_team:.1f}x the floor; one learner's steps "
           f"{floor_one:.3f} s at its {threads}-thread peak ({one / 1e9:.0f} GFLOPS), its compute "
-          f"{mean['compute'] / floor_one:.1f}x that")
+          f"{mean['compute'] / floor_one:.1f}x that in wall time, {mean['compute'] * share / floor_one:.1f}x in its "
+          f"share of the cores")
+    peaks = list(sampler.learner_peak.values()) or [0]
+    print(f"{label}, memory: learner peak resident {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
+          f"the learners together grew {growth(sampler.learner_series) / 1024:+.1f} MiB over the second half of their life, "
+          f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak")
     print(f"run directory: {run_dir}")
 
 

@@ -22,59 +22,11 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
-
-def children(pid: int) -> set[int]:
-    """Every live descendant of ``pid``."""
-    out, todo = set(), [pid]
-    while todo:
-        p = todo.pop()
-        try:
-            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
-        except OSError:
-            continue
-        for k in map(int, kids):
-            if k not in out:
-                out.add(k)
-                todo.append(k)
-    return out
-
-
-def rss_kib(pid: int) -> tuple[str, int]:
-    """(command line, resident KiB) of ``pid``; ('', 0) when it is gone."""
-    try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return cmd, int(line.split()[1])
-    except OSError:
-        pass
-    return "", 0
-
-
-class MemorySampler(threading.Thread):
-    """Peak resident memory per learner process and of the whole process tree of a run."""
-
-    def __init__(self, root: int, every: float = 0.25):
-        super().__init__(daemon=True)
-        self.root, self.every = root, every
-        self.learner_peak: dict[int, int] = {}
-        self.total_peak = 0
-        self.stop = threading.Event()
-
-    def run(self) -> None:
-        while not self.stop.is_set():
-            total = 0
-            for pid in children(self.root) | {self.root}:
-                cmd, kib = rss_kib(pid)
-                total += kib
-                if " learner" in cmd:
-                    self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
-            self.total_peak = max(self.total_peak, total)
-            self.stop.wait(self.every)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from procmem import MemorySampler  # noqa: E402
 
 
 def round_time(run_dir: Path) -> float:

@@ -99,3 +99,11 @@ def test_record_and_replay_exclude_each_other():
 def test_centralized_needs_the_inproc_transport():
     with pytest.raises(ConfigError, match="transport to inproc"):
         load(["up", "--algorithm", "centralized"])
+
+
+def test_dinno_fast_keeps_dinnos_setting_and_changes_only_the_schedule():
+    fast, published = load(["up", "--preset", "dinno-fast"]), load(["up", "--preset", "dinno"])
+    assert fast.world == published.world and fast.lidar == published.lidar and fast.robots == published.robots
+    changed = {k for k, v in fast.learner.model_dump().items() if published.learner.model_dump()[k] != v}
+    assert changed == {"rounds", "batch_size", "lr_start", "lr_finish", "rho_init"}
+    assert published.learner.rho_init == 0.3 and published.learner.batch_size == 12500  # DiNNO's, as published

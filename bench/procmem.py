@@ -1,0 +1,74 @@
+"""Resident memory of a process tree, sampled from /proc (Linux), for the benches."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+
+def children(pid: int) -> set[int]:
+    """Every live descendant of ``pid``."""
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
+        except OSError:
+            continue
+        for k in map(int, kids):
+            if k not in out:
+                out.add(k)
+                todo.append(k)
+    return out
+
+
+def rss_kib(pid: int) -> tuple[str, int]:
+    """(command line, resident KiB) of ``pid``; ('', 0) when it is gone."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return cmd, int(line.split()[1])
+    except OSError:
+        pass
+    return "", 0
+
+
+class MemorySampler(threading.Thread):
+    """Peak resident memory per learner process and of the whole process tree of a run."""
+
+    def __init__(self, root: int, every: float = 0.25):
+        super().__init__(daemon=True)
+        self.root, self.every = root, every
+        self.learner_peak: dict[int, int] = {}
+        self.total_peak = 0
+        self.learner_series: list[tuple[float, int]] = []  # (seconds, KiB of every learner together)
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        t0 = time.monotonic()
+        while not self.stop.is_set():
+            total = learners = 0
+            for pid in children(self.root) | {self.root}:
+                cmd, kib = rss_kib(pid)
+                total += kib
+                if " learner " in cmd:
+                    self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
+                    learners += kib
+            self.total_peak = max(self.total_peak, total)
+            if learners:
+                self.learner_series.append((time.monotonic() - t0, learners))
+            self.stop.wait(self.every)
+
+
+def growth(series: list[tuple[float, int]]) -> float:
+    """KiB the learners grew from the middle of their life to its end (the mean of the last
+    tenth of the samples against that of the tenth at the middle)."""
+    if len(series) < 20:
+        return 0.0
+    n = len(series)
+    tenth = max(1, n // 10)
+    mid = [k for _, k in series[n // 2 - tenth // 2 : n // 2 + tenth // 2 + 1]]
+    end = [k for _, k in series[-tenth:]]
+    return sum(end) / len(end) - sum(mid) / len(mid)
