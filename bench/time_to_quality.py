@@ -27,10 +27,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 def curve(run_dir: Path) -> tuple[list[int], list[float], list[float], float]:
     """Rounds, seconds since the run started, mean val_bce; and the run's start-up before training."""
     rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
-    robots = len({r["robot"] for r in rows})
     by_round: dict[int, list[dict]] = defaultdict(list)
     for r in rows:
         by_round[int(r["round"])].append(r)
+    # The learners that report from round 0 (a centralized run has one, its copies report only at the end).
+    learners = {r["robot"] for r in by_round[min(by_round)]}
+    robots = len(learners)
     summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else {}
     last = max(float(r["wall_time_s"]) for r in rows)
     # Start-up and traversal: the run's whole wall time less the learners' (their clock starts with
@@ -38,8 +40,8 @@ def curve(run_dir: Path) -> tuple[list[int], list[float], list[float], float]:
     startup = max(0.0, float(summary.get("wall_time_s", last)) - last)
     rounds, times, means = [], [], []
     for k in sorted(by_round):
-        mine = {r["robot"]: r for r in by_round[k]}
-        if len(mine) < robots:
+        mine = {r["robot"]: r for r in by_round[k] if r["robot"] in learners}
+        if len(mine) != robots:
             continue
         rounds.append(k)
         times.append(startup + max(float(r["wall_time_s"]) for r in mine.values()))
