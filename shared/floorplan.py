@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
-import trimesh
 from scipy import ndimage
 from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.ops import unary_union
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 class PlanError(ValueError):
@@ -90,6 +93,8 @@ class FloorPlan:
 
     def mesh(self, height: float) -> trimesh.Trimesh:
         """The walls extruded to ``height`` metres: one watertight mesh."""
+        import trimesh  # here: only the world builds meshes, and trimesh costs every learner 0.5 s and memory
+
         # Snapping to a micrometre grid and dropping collinear vertices keeps the triangulation
         # of rings with many mitred corners from leaving gaps (a non-watertight mesh).
         clean = [shapely.set_precision(p, 1e-6).simplify(1e-6) for p in self.wall_parts() if p.area > 1e-8]
