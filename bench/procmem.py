@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -72,3 +73,15 @@ def growth(series: list[tuple[float, int]]) -> float:
     mid = [k for _, k in series[n // 2 - tenth // 2 : n // 2 + tenth // 2 + 1]]
     end = [k for _, k in series[-tenth:]]
     return sum(end) / len(end) - sum(mid) / len(mid)
+
+
+def run_sampled(cmd: list[str], env: dict[str, str] | None = None) -> tuple[int, str, float, MemorySampler]:
+    """Run ``cmd`` while sampling its process tree's memory: exit status, stderr, seconds, sampler."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    sampler = MemorySampler(proc.pid)
+    sampler.start()
+    _, err = proc.communicate()
+    sampler.stop.set()
+    sampler.join()
+    return proc.returncode, err, time.perf_counter() - t0, sampler

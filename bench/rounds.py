@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,7 +26,7 @@ import yaml
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from procmem import MemorySampler, growth  # noqa: E402
+from procmem import growth, run_sampled  # noqa: E402
 
 
 def peak(threads: int) -> float:
@@ -80,16 +79,9 @@ def main() -> None:
         cmd += ["--waypoints", args.waypoints]
     for item in args.set:
         cmd += ["--set", item]
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    sampler = MemorySampler(proc.pid)
-    sampler.start()
-    _, err = proc.communicate()
-    sampler.stop.set()
-    sampler.join()
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        sys.exit(f"swarmmap up failed ({proc.returncode}):\n{err[-3000:]}")
+    status, err, wall, sampler = run_sampled(cmd)
+    if status != 0:
+        sys.exit(f"swarmmap up failed ({status}):\n{err[-3000:]}")
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     s = cfg["learner"]
     robots = cfg["robots"]

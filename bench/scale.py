@@ -19,14 +19,12 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from procmem import MemorySampler  # noqa: E402
+from procmem import run_sampled  # noqa: E402
 
 
 def round_time(run_dir: Path) -> float:
@@ -61,17 +59,9 @@ def main() -> None:
                "--set", f"learner.graph={args.graph}", "--set", f"learner.model_shape=[{args.shape}]",
                "--set", f"learner.batch_size={args.batch}", "--set", f"learner.eval_every={args.rounds}",
                "--set", "learner.checkpoint_every=0"]
-        t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                env=os.environ | {"OMP_NUM_THREADS": "1"})
-        sampler = MemorySampler(proc.pid)
-        sampler.start()
-        _, err = proc.communicate()
-        sampler.stop.set()
-        sampler.join()
-        wall = time.perf_counter() - t0
-        if proc.returncode != 0:
-            print(f"team of {n}: swarmmap up failed ({proc.returncode}): {err[-1500:]}", flush=True)
+        status, err, wall, sampler = run_sampled(cmd, env=os.environ | {"OMP_NUM_THREADS": "1"})
+        if status != 0:
+            print(f"team of {n}: swarmmap up failed ({status}): {err[-1500:]}", flush=True)
             continue
         rt = round_time(run_dir)
         per_learner = rt / n
