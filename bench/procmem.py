@@ -1,4 +1,9 @@
-"""Resident memory of a process tree, sampled from /proc (Linux), for the benches."""
+"""Memory of a process tree, sampled from /proc (Linux), for the benches.
+
+Per process: its resident set (RSS, what one process holds, shared libraries included). For
+the whole tree: the sum of the proportional set sizes (PSS: each shared page divided among the
+processes that map it), the memory the run really takes; a sum of RSS would count torch's
+libraries and Zenoh's shared-memory segments once per process."""
 
 from __future__ import annotations
 
@@ -24,26 +29,28 @@ def children(pid: int) -> set[int]:
     return out
 
 
-def rss_kib(pid: int) -> tuple[str, int]:
-    """(command line, resident KiB) of ``pid``; ('', 0) when it is gone."""
+def memory_kib(pid: int) -> tuple[str, int, int]:
+    """(command line, RSS KiB, PSS KiB) of ``pid``; ('', 0, 0) when it is gone."""
     try:
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return cmd, int(line.split()[1])
-    except OSError:
-        pass
-    return "", 0
+        fields = {}
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            name, _, rest = line.partition(":")
+            if name in ("Rss", "Pss"):
+                fields[name] = int(rest.split()[0])
+        return cmd, fields.get("Rss", 0), fields.get("Pss", 0)
+    except (OSError, ValueError):
+        return "", 0, 0
 
 
 class MemorySampler(threading.Thread):
-    """Peak resident memory per learner process and of the whole process tree of a run."""
+    """Peak RSS of each learner process and peak PSS of the whole process tree of a run."""
 
     def __init__(self, root: int, every: float = 0.25):
         super().__init__(daemon=True)
         self.root, self.every = root, every
         self.learner_peak: dict[int, int] = {}
-        self.total_peak = 0
+        self.total_peak = 0  # KiB, PSS of every process of the run
         self.learner_series: list[tuple[float, int]] = []  # (seconds, KiB of every learner together)
         self.stop = threading.Event()
 
@@ -52,8 +59,8 @@ class MemorySampler(threading.Thread):
         while not self.stop.is_set():
             total = learners = 0
             for pid in children(self.root) | {self.root}:
-                cmd, kib = rss_kib(pid)
-                total += kib
+                cmd, kib, pss = memory_kib(pid)
+                total += pss
                 if " learner " in cmd:
                     self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
                     learners += kib

@@ -115,9 +115,9 @@ def main() -> None:
           f"{mean['compute'] / floor_one:.1f}x that in wall time, {mean['compute'] * share / floor_one:.1f}x in its "
           f"share of the cores")
     peaks = list(sampler.learner_peak.values()) or [0]
-    print(f"{label}, memory: learner peak resident {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
+    print(f"{label}, memory: learner peak RSS {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
           f"the learners together grew {growth(sampler.learner_series) / 1024:+.1f} MiB over the second half of their life, "
-          f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak")
+          f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak (PSS)")
     print(f"run directory: {run_dir}")
 
 

@@ -69,8 +69,8 @@ def main() -> None:
         peaks = list(sampler.learner_peak.values()) or [0]
         print(f"team of {n} learners, tiny model {args.shape}, {args.graph} graph: {rt:.3f} s a round, "
               f"{per_learner * 1e3:.1f} ms a round per learner ({per_learner / first:.2f}x linear from the first team), "
-              f"learner peak memory {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
-              f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak, {wall:.0f} s wall", flush=True)
+              f"learner peak RSS {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
+              f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak (PSS), {wall:.0f} s wall", flush=True)
 
 
 if __name__ == "__main__":
