@@ -7,6 +7,7 @@ libraries and Zenoh's shared-memory segments once per process."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import threading
 import time
@@ -43,6 +44,25 @@ def memory_kib(pid: int) -> tuple[str, int, int]:
         return "", 0, 0
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds ``pid`` has used so far (0 when it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def service_of(cmd: str) -> str:
+    """The swarmmap service a command line runs (``cli learner ...``), or ``other``."""
+    words = cmd.split()
+    if "swarmmap.services.cli" in words:
+        at = words.index("swarmmap.services.cli")
+        if at + 1 < len(words):
+            return words[at + 1]
+    return "other"
+
+
 class MemorySampler(threading.Thread):
     """Peak RSS of each learner process and peak PSS of the whole process tree of a run."""
 
@@ -52,6 +72,7 @@ class MemorySampler(threading.Thread):
         self.learner_peak: dict[int, int] = {}
         self.total_peak = 0  # KiB, PSS of every process of the run
         self.learner_series: list[tuple[float, int]] = []  # (seconds, KiB of every learner together)
+        self.cpu: dict[int, tuple[str, float]] = {}  # pid -> (service, CPU seconds at its last sample)
         self.stop = threading.Event()
 
     def run(self) -> None:
@@ -61,6 +82,8 @@ class MemorySampler(threading.Thread):
             for pid in children(self.root) | {self.root}:
                 cmd, kib, pss = memory_kib(pid)
                 total += pss
+                if cmd:
+                    self.cpu[pid] = (service_of(cmd), cpu_seconds(pid))
                 if " learner " in cmd:
                     self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
                     learners += kib
@@ -68,6 +91,14 @@ class MemorySampler(threading.Thread):
             if learners:
                 self.learner_series.append((time.monotonic() - t0, learners))
             self.stop.wait(self.every)
+
+
+    def cpu_by_service(self) -> dict[str, float]:
+        """CPU seconds each kind of service used (as last sampled), summed over its processes."""
+        out: dict[str, float] = {}
+        for service, seconds in self.cpu.values():
+            out[service] = out.get(service, 0.0) + seconds
+        return out
 
 
 def growth(series: list[tuple[float, int]]) -> float:

@@ -71,6 +71,9 @@ def main() -> None:
               f"{per_learner * 1e3:.1f} ms a round per learner ({per_learner / first:.2f}x linear from the first team), "
               f"learner peak RSS {max(peaks) / 1024:.0f} MiB (mean {sum(peaks) / len(peaks) / 1024:.0f}), "
               f"whole run {sampler.total_peak / 1024 ** 2:.2f} GiB peak (PSS), {wall:.0f} s wall", flush=True)
+        cpu = sampler.cpu_by_service()
+        print(f"team of {n}: CPU seconds by service: " + ", ".join(f"{k} {v:.1f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])),
+              flush=True)
 
 
 if __name__ == "__main__":
