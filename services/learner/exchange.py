@@ -140,7 +140,9 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     States its neighbours had (and comes back where it would have been). Further behind than
     that, it jumps: before it has finished a round with a neighbour, a plausible State more than
     ``keep_rounds`` rounds ahead makes it jump to that round, starting from
-    ``rejoin(own_state, {peer: state})`` (default: its own state). A node whose neighbours are
+    ``rejoin(own_state, {peer: state})`` (default: its own state). So does a node left behind:
+    one stuck in a round for longer than ``silent_after`` (its neighbours have left it out by
+    then) that receives a State further ahead than they can replay. A node whose neighbours are
     all left out waits for one to come back, and fails (PeerFailure) when it has had none for
     ``peer_timeout`` seconds.
     """
@@ -151,6 +153,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     active = set(neighbours)  # the neighbours this round waits for
     returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
     joining = resumed  # may jump ahead to its team's round, until it finishes a round with a neighbour
+    round_started = time.monotonic()  # when this node began its current round
     heard = dict.fromkeys(neighbours, time.monotonic())
     lost_since: dict[int, float] = {}
     alone_since: float | None = None
@@ -182,7 +185,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         """The paper's FINISHROUND: once the node has updated and every neighbour of the round is
         complete, or one has moved on (its State of the next round is here), go to the next
         round and send its State. Returns whether it did."""
-        nonlocal rnd, updated, joining, round_state
+        nonlocal rnd, updated, joining, round_state, round_started
         moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
         if not (updated and (active <= buf.complete[rnd] or moved_on)):
             return False
@@ -191,6 +194,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         buf.complete.pop(rnd, None)
         rnd += 1
         updated = False
+        round_started = time.monotonic()
         stats.rounds_done += 1
         if returning:
             log.info("node %d: neighbour(s) %s back from round %d", node_id, sorted(returning), rnd)
@@ -277,21 +281,28 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 continue
             if j in buf.states[msg.round]:
                 continue  # the first State of a round counts
-            jump = joining and not updated and rnd + keep_rounds < msg.round <= max_rounds
+            # Left behind: stuck in this round for longer than the neighbours wait for anyone, while
+            # they are further ahead than they can replay. They left this node out (it was slow to
+            # start, or starved of CPU): catch up with them rather than wait for rounds nobody will send.
+            left_behind = (now - round_started > silent_after
+                           and rnd + max(keep_rounds, ROUNDS_AHEAD) < msg.round <= max_rounds)
+            jump = (joining and not updated and rnd + keep_rounds < msg.round <= max_rounds) or left_behind
             if msg.round > rnd + ROUNDS_AHEAD and not jump:
                 if not (joining and msg.round <= rnd + keep_rounds):  # (those are the replay's, coming)
                     refuse(stats, node_id, msg, f"round {msg.round} while this node is at round {rnd}", "far-future")
                 continue
             # A node catching up holds stale parameters: it cannot judge distances to them.
-            why = check_state(msg.params, None if joining and not updated else state) if check_state is not None else None
+            stale = (joining and not updated) or left_behind
+            why = check_state(msg.params, None if stale else state) if check_state is not None else None
             if why is not None:
                 refuse(stats, node_id, msg, why, "implausible")
                 continue
             if jump:  # the team is too far ahead to replay: catch up with it
-                log.info("node %d: neighbour %d is at round %d; catching up from round %d", node_id, j, msg.round, rnd)
+                log.info("node %d: neighbour %d is at round %d; catching up from round %d%s", node_id, j, msg.round, rnd,
+                         f" (left behind for {now - round_started:.0f} s)" if left_behind else "")
                 buf.states = defaultdict(dict, {r: v for r, v in buf.states.items() if r >= msg.round})
                 buf.complete = defaultdict(set, {r: v for r, v in buf.complete.items() if r >= msg.round})
-                rnd = msg.round
+                rnd, updated, round_started = msg.round, False, now
                 buf.states[rnd][j] = msg.params
                 state = round_state = rejoin(state, dict(buf.states[rnd])) if rejoin is not None else state
                 active = {j} | (active & buf.states[rnd].keys())

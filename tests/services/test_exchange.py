@@ -3,6 +3,7 @@ nothing, dead or silent peers are named."""
 
 from __future__ import annotations
 
+import logging
 import random
 import threading
 
@@ -251,3 +252,41 @@ def test_a_node_that_crashes_and_resumes_from_its_checkpoint_replays_and_ends_as
         t.join(60)
     for i in graph:
         np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
+
+
+def test_a_node_left_behind_catches_up_with_its_team_instead_of_waiting_forever(caplog):
+    """Node 2 starts late (a slow start, a starved CPU): its neighbours leave it out as silent
+    and go on. When it comes, they are further ahead than they can replay; once it has been
+    stuck for silent_after it jumps to their round, they take it back, and every node finishes."""
+    caplog.set_level(logging.INFO)
+    graph, rounds = COMPLETE3, 80
+    init = {i: np.full(4, float(i)) for i in graph}
+    hub = MemoryHub(graph)
+    results, stats = {}, {i: ExchangeStats() for i in graph}
+
+    def slow(i):
+        update = mixing_update(i)
+
+        def step(k, theta, peers):
+            threading.Event().wait(0.05)  # 80 rounds take the others about 4 s
+            return update(k, theta, peers)
+
+        return step
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], rounds, init[i], slow(i), hub.transport(i), stats=stats[i],
+                                    resend_after=0.2, linger=0.5, silent_after=0.6, keep_rounds=2, peer_timeout=30)
+
+    threads = {i: threading.Thread(target=node, args=(i,)) for i in graph}
+    for i in (0, 1):
+        threads[i].start()
+    threading.Event().wait(1.2)  # node 2 starts late: 0 and 1 have left it out and are rounds ahead
+    while not hub.queues[2].empty():  # what was sent before it started never reached it
+        hub.queues[2].get()
+    threads[2].start()
+    for t in threads.values():
+        t.join(30)
+    assert sorted(results) == [0, 1, 2], "a node was still waiting"
+    assert stats[2].caught_up == 1 and stats[2].rounds_done < rounds - 5, "node 2 should have jumped ahead"
+    assert stats[0].rejoined >= 1 and stats[1].rejoined >= 1, "its neighbours should have taken it back"
+    assert "left behind" in caplog.text
