@@ -23,7 +23,7 @@ run: setup
 	$(BIN)/swarmmap up --preset demo $(RUN_ARGS)
 
 test: setup
-	$(BIN)/python -m pytest -ra -m "not deploy and not faults"
+	$(BIN)/python -m pytest -ra --durations=15 -m "not deploy and not faults"
 
 test-faults: setup
 	$(BIN)/python -m pytest -ra -m faults
