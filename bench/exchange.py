@@ -4,11 +4,12 @@
 
 Two real processes on loopback (Zenoh peers, TCP, no TLS for both paths so that only the
 project's own layers differ). The bench process is learner 0; a second process, started
-with ``--role echo``, is learner 1. For each State size (DiNNO's FourierNet, 25,601 values,
+with ``--role echo`` afresh for each size, is learner 1; both use the learner's own
+:class:`ZenohTransport` for that size. For each State size (DiNNO's FourierNet, 25,601 values,
 102 kB; the paper's BNN with mu and rho, 527,361 values, 2.1 MB):
 
-- project: learner 0 sends a State with :class:`ZenohTransport` (``Tensor`` + ``State`` +
-  msgpack, a declared publisher); learner 1 receives it as Algorithm 1 does (decode, validate,
+- project: learner 0 sends a State with :class:`ZenohTransport` (``encode_state``, a
+  declared publisher); learner 1 receives it as Algorithm 1 does (decode, validate,
   shape check, an ``Envelope`` with its own float32 vector) and sends it back the same way;
 - raw: the same bytes with a bare ``session.put`` and a subscriber that takes them out of
   Zenoh (``payload.to_bytes()``) and puts them back.
@@ -35,7 +36,7 @@ from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ZenohSettings
 from swarmmap.shared.models import build_model, param_count
-from swarmmap.shared.protocol import Keys, ProtocolError, State, decode, encode_state
+from swarmmap.shared.protocol import Keys, State, decode, encode_state
 
 RUN = "bench-exchange"
 SIZES = {
@@ -60,29 +61,12 @@ def values(size: str) -> int:
     return param_count(build_model(shape, 5.0, (0.0, 0.0, 1.0, 1.0), 0, kind))
 
 
-class Transport(ZenohTransport):
-    """A learner's Algorithm 1 transport (:class:`ZenohTransport`'s send and receive paths) that
-    takes States of each size this bench sends, with the same shape check."""
-
-    def __init__(self, bus: Bus, node: int, peer: int, sizes: set[int]):
-        self.bus, self.node, self.run = bus, node, bus.keys.run
-        self.inbox = queue.Queue()
-        self.state_pub = bus.publisher(bus.keys.state(node))
-        self.complete_pub = bus.publisher(bus.keys.round_complete(node))
-
-        def check(msg: State) -> None:
-            if msg.params.shape[0] not in sizes:
-                raise ProtocolError("shape", f"State.params has shape {msg.params.shape}")
-
-        bus.subscribe(bus.keys.state(peer), State, self._on_state, check=check)
-
-
-def echo(endpoint: str, sizes: list[str]) -> None:
-    """Learner 1: send back every State (through the project's transport) and every raw payload."""
+def echo(endpoint: str, size: str) -> None:
+    """Learner 1: send back every State (through the learner's own transport) and every raw payload."""
     bus = Bus.open(settings(None, endpoint), Keys("swarmmap", RUN), "learner", 1)
     raw_back = bus.session.declare_publisher("bench/raw/back", congestion_control=zenoh.CongestionControl.BLOCK)
     bus.session.declare_subscriber("bench/raw/out", lambda s: raw_back.put(s.payload.to_bytes()))
-    transport = Transport(bus, 1, 0, {values(size) for size in sizes})
+    transport = ZenohTransport(bus, 1, {0}, values(size))
     bus.announce()
     print("ready", flush=True)
     while True:  # until the bench terminates this process
@@ -116,21 +100,12 @@ def serialisation(n: int, reps: int = 50) -> tuple[float, float]:
     return enc, (time.perf_counter() - t) / reps
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--trips", type=int, default=200)
-    ap.add_argument("--sizes", default="dinno,paper")
-    ap.add_argument("--role", default="bench", choices=["bench", "echo"])
-    ap.add_argument("--endpoint", default=None)
-    args = ap.parse_args()
-    sizes = args.sizes.split(",")
-    if args.role == "echo":
-        echo(args.endpoint, sizes)
-        return
+def measure(size: str, trips: int) -> dict:
+    """One size, between this process and a fresh echo process (each with the transport a
+    learner of that size has); prints the headline and returns the figures."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    keys = Keys("swarmmap", RUN)
-    bus = Bus.open(settings(endpoint, None), keys, "learner", 0)
-    peer = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--endpoint", endpoint, "--sizes", args.sizes],
+    bus = Bus.open(settings(endpoint, None), Keys("swarmmap", RUN), "learner", 0)
+    peer = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--endpoint", endpoint, "--sizes", size],
                             stdout=subprocess.PIPE, text=True)
     try:
         assert peer.stdout.readline().strip() == "ready", "the echo process did not start"
@@ -142,30 +117,40 @@ def main() -> None:
         raw_in: queue.Queue[bytes] = queue.Queue()
         bus.session.declare_subscriber("bench/raw/back", lambda s: raw_in.put(s.payload.to_bytes()))
         raw_out = bus.session.declare_publisher("bench/raw/out", congestion_control=zenoh.CongestionControl.BLOCK)
-        results = {}
-        transport = Transport(bus, 0, 1, {values(size) for size in sizes})
-        for size in sizes:
-            label = SIZES[size][0]
-            n = values(size)
-            params = np.random.default_rng(1).standard_normal(n).astype(np.float32)
-            payload = encode_state(RUN, 0, 1, params)
+        n = values(size)
+        transport = ZenohTransport(bus, 0, {1}, n)
+        params = np.random.default_rng(1).standard_normal(n).astype(np.float32)
+        payload = encode_state(RUN, 0, 1, params)
 
-            def receive_state() -> None:
-                if transport.receive(10.0) is None:
-                    raise SystemExit("a State was lost")
+        def receive_state() -> None:
+            if transport.receive(10.0) is None:
+                raise SystemExit("a State was lost")
 
-            project = median_trip(lambda r: transport.send_state(r, params), receive_state, args.trips) / 2
-            raw = median_trip(lambda r: raw_out.put(payload), lambda: raw_in.get(timeout=10), args.trips) / 2
-            enc, dec = serialisation(n)
-            results[size] = {"bytes": len(payload), "project_s": project, "raw_s": raw, "encode_s": enc, "decode_s": dec}
-            print(f"State exchange, {label} size {len(payload) / 1e6:.2f} MB: {project * 1e3:.2f} ms one-way, "
-                  f"{project / raw:.2f}x raw Zenoh ({raw * 1e3:.2f} ms), serialisation {100 * (enc + dec) / project:.0f}% "
-                  f"(encode {enc * 1e3:.2f} ms, decode {dec * 1e3:.2f} ms)", flush=True)
-        print(json.dumps(results))
+        project = median_trip(lambda r: transport.send_state(r, params), receive_state, trips) / 2
+        raw = median_trip(lambda r: raw_out.put(payload), lambda: raw_in.get(timeout=10), trips) / 2
     finally:
         peer.terminate()
         peer.wait(10)
         bus.close()
+    enc, dec = serialisation(n)
+    print(f"State exchange, {SIZES[size][0]} size {len(payload) / 1e6:.2f} MB: {project * 1e3:.2f} ms one-way, "
+          f"{project / raw:.2f}x raw Zenoh ({raw * 1e3:.2f} ms), serialisation {100 * (enc + dec) / project:.0f}% "
+          f"(encode {enc * 1e3:.2f} ms, decode {dec * 1e3:.2f} ms)", flush=True)
+    return {"bytes": len(payload), "project_s": project, "raw_s": raw, "encode_s": enc, "decode_s": dec}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trips", type=int, default=200)
+    ap.add_argument("--sizes", default="dinno,paper")
+    ap.add_argument("--role", default="bench", choices=["bench", "echo"])
+    ap.add_argument("--endpoint", default=None)
+    args = ap.parse_args()
+    sizes = args.sizes.split(",")
+    if args.role == "echo":
+        echo(args.endpoint, sizes[0])
+        return
+    print(json.dumps({size: measure(size, args.trips) for size in sizes}))
 
 
 if __name__ == "__main__":
