@@ -169,7 +169,7 @@ class MapPlan:
                 self.steps.append(("linear", (m.weight.t().to(dtype), None if m.bias is None else m.bias.to(dtype))))
             else:
                 self.steps.append(("module", m))
-        self.widths = [w.shape[-1] for kind, wb in self.steps if kind == "bayes" for w in wb[:1]]
+        self.widths = [arg[0].shape[-1] for kind, arg in self.steps if kind == "bayes"]
 
     def logits(self, xy: torch.Tensor) -> torch.Tensor:
         """Pre-sigmoid outputs (S, N) of every pass for points ``xy`` (N, 2)."""
