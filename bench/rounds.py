@@ -53,6 +53,24 @@ def step_flops(shape: list[int], batch: int, bayes: bool) -> float:
     return 3 * forward * batch
 
 
+def per_round(run_dir: Path, columns: dict[str, str]) -> dict[str, float]:
+    """Seconds a round of each cumulative Metrics column (name -> column of metrics.csv): per
+    learner, the change between its first and last Metrics over the rounds between them; the
+    mean over learners."""
+    per_robot: dict[str, list[dict]] = {}
+    for r in csv.DictReader((run_dir / "metrics.csv").open()):
+        per_robot.setdefault(r["robot"], []).append(r)
+    split: dict[str, list[float]] = {name: [] for name in columns}
+    for mine in per_robot.values():
+        mine.sort(key=lambda r: int(r["round"]))
+        first, last = mine[0], mine[-1]
+        n = int(last["round"]) - int(first["round"])
+        if n > 0:
+            for name, column in columns.items():
+                split[name].append((float(last[column]) - float(first[column])) / n)
+    return {name: sum(v) / len(v) for name, v in split.items()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="dinno")
@@ -85,21 +103,7 @@ def main() -> None:
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     s = cfg["learner"]
     robots = cfg["robots"]
-    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
-    per_robot = {}
-    for r in rows:
-        per_robot.setdefault(r["robot"], []).append(r)
-    split = {"round": [], "compute": [], "wait": [], "send": []}
-    for mine in per_robot.values():
-        mine.sort(key=lambda r: int(r["round"]))
-        first, last = mine[0], mine[-1]
-        n = int(last["round"]) - int(first["round"])
-        if n <= 0:
-            continue
-        split["round"].append((float(last["wall_time_s"]) - float(first["wall_time_s"])) / n)
-        for part in ("compute", "wait", "send"):
-            split[part].append((float(last[f"{part}_s"]) - float(first[f"{part}_s"])) / n)
-    mean = {k: sum(v) / len(v) for k, v in split.items()}
+    mean = per_round(run_dir, {"round": "wall_time_s", "compute": "compute_s", "wait": "wait_s", "send": "send_s"})
     flops = s["primal_iterations"] * step_flops(s["model_shape"], s["batch_size"], s["model"] == "bnn")
     threads = s.get("torch_threads", 1)
     one, every = peak(threads), peak(torch.get_num_threads())

@@ -17,7 +17,6 @@ many robots there are.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 import tempfile
@@ -25,20 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from procmem import run_sampled  # noqa: E402
-
-
-def round_time(run_dir: Path) -> float:
-    """Mean over learners of seconds a round between their first and last Metrics."""
-    per: dict[str, list[dict]] = {}
-    for r in csv.DictReader((run_dir / "metrics.csv").open()):
-        per.setdefault(r["robot"], []).append(r)
-    times = []
-    for mine in per.values():
-        mine.sort(key=lambda r: int(r["round"]))
-        n = int(mine[-1]["round"]) - int(mine[0]["round"])
-        if n > 0:
-            times.append((float(mine[-1]["wall_time_s"]) - float(mine[0]["wall_time_s"])) / n)
-    return sum(times) / len(times)
+from rounds import per_round  # noqa: E402
 
 
 def main() -> None:
@@ -63,7 +49,7 @@ def main() -> None:
         if status != 0:
             print(f"team of {n}: swarmmap up failed ({status}): {err[-1500:]}", flush=True)
             continue
-        rt = round_time(run_dir)
+        rt = per_round(run_dir, {"round": "wall_time_s"})["round"]
         per_learner = rt / n
         first = first or per_learner
         peaks = list(sampler.learner_peak.values()) or [0]
