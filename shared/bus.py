@@ -112,7 +112,7 @@ class Publisher:
         """Send ``message``; returns its size in bytes."""
         return self.put_bytes(encode(message))
 
-    def put_bytes(self, payload: bytes) -> int:
+    def put_bytes(self, payload: bytes | bytearray) -> int:
         """Send an already encoded message."""
         self._pub.put(payload)
         self._bus.sent.add(self.key, len(payload))

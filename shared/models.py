@@ -94,6 +94,21 @@ def get_flat(model: nn.Module) -> torch.Tensor:
 
 
 @torch.no_grad()
+def flatten_into(tensors: list[torch.Tensor], out: np.ndarray) -> np.ndarray:
+    """Write ``tensors`` (any device) one after another into the float32 vector ``out``, in one
+    pass: a node's State goes straight into the buffer it is sent from."""
+    flat = [t.detach().reshape(-1) for t in tensors]
+    if sum(t.numel() for t in flat) != out.size:
+        raise ValueError(f"{out.size} values to fill, the tensors have {sum(t.numel() for t in flat)}")
+    dst = torch.from_numpy(out)
+    if all(t.device.type == "cpu" and t.dtype == torch.float32 for t in flat):
+        torch.cat(flat, out=dst)
+    else:
+        dst.copy_(torch.cat([t.to(torch.float32) for t in flat]))
+    return out
+
+
+@torch.no_grad()
 def set_flat(model: nn.Module, flat: torch.Tensor) -> None:
     """Copy a flat vector into the model's parameters.
 

@@ -22,6 +22,7 @@ also learns from the prediction loss.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -30,7 +31,7 @@ import torch.nn.functional as F
 
 from swarmmap.shared.bnn import BayesNet, gaussian_kl, is_rho
 from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.models import get_flat, set_flat
+from swarmmap.shared.models import flatten_into, set_flat
 
 
 def lr_schedule(kind: str, start: float, finish: float, rounds: int) -> np.ndarray:
@@ -95,6 +96,7 @@ class LocalNode:
         self.points = points.to(self.device)
         self.labels = labels.to(self.device)
         self.s = settings
+        self.new_state: Callable[[int], np.ndarray] = lambda n: np.empty(n, np.float32)  # set by a transport
         self.lrs = lr_schedule(settings.lr_schedule, settings.lr_start, settings.lr_finish, settings.rounds)
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         self.bayesian = isinstance(model, BayesNet)
@@ -119,12 +121,13 @@ class LocalNode:
         self.labels = torch.from_numpy(np.ascontiguousarray(labels)).to(self.device)
 
     def state(self) -> np.ndarray:
-        """What this node sends as its State: its flat parameters."""
-        return get_flat(self.model).cpu().numpy().astype(np.float32)
+        """What this node sends as its State: its flat parameters, written once into a vector
+        from ``new_state`` (the transport's payload buffer, where it has one)."""
+        return flatten_into(list(self.model.parameters()), self.new_state(self.state_size()))
 
     def params(self) -> np.ndarray:
         """The node's model parameters (a prefix of its State for DSGT)."""
-        return get_flat(self.model).cpu().numpy().astype(np.float32)
+        return flatten_into(list(self.model.parameters()), np.empty(self.param_count, np.float32))
 
     def params_of(self, state: np.ndarray) -> np.ndarray:
         """The model parameters inside a State of this node's kind."""
@@ -221,7 +224,7 @@ class DinnoNode(LocalNode):
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
         th_reg = duals = None
         if peers:
-            thj = torch.stack([torch.as_tensor(p, device=self.device) for p in peers.values()])
+            thj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
             for j, th in zip(peers, thj):
                 self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + self.rho * (th_i - th)
             duals = torch.stack([self.duals[j] for j in peers]).sum(0)  # the links of this round only
@@ -318,8 +321,11 @@ class DsgtNode(LocalNode):
         super().restore(doc)
         self.y, self.g_old = doc["y"].to(self.device), doc["g_old"].to(self.device)
 
+    def state_size(self) -> int:
+        return 2 * self.n  # theta and its tracker
+
     def state(self) -> np.ndarray:
-        return torch.cat([get_flat(self.model), self.y]).cpu().numpy().astype(np.float32)
+        return flatten_into([*self.model.parameters(), self.y], self.new_state(self.state_size()))
 
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:

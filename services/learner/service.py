@@ -348,6 +348,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
                 me = learners[0]
                 transport = ZenohTransport(bus, me.robot, me.neighbours, me.node.state_size())
+                me.node.new_state = transport.new_state  # States written straight into their payloads
                 if any_faults(cfg.faults):
                     log.warning("robot %d: injecting faults on its incoming links: %s", me.robot, cfg.faults.model_dump())
                     transport = FaultyTransport(transport, me.robot, cfg.faults)

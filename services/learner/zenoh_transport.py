@@ -4,6 +4,11 @@ A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete``
 subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
 than this node's model is refused (counted, logged once). The neighbours' ``exchange``
 liveliness tokens tell the exchange when one has left.
+
+No copies of a vector beyond Zenoh's own: the node writes its State into a
+:class:`~swarmmap.shared.protocol.StateFrame` (:meth:`ZenohTransport.new_state`), which is sent
+as it is, and a neighbour's State reaches Algorithm 1 as a read-only view of the received
+payload.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import numpy as np
 
 from swarmmap.services.learner.exchange import Envelope
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, encode_state
+from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateFrame, encode_state
 
 
 class ZenohTransport:
@@ -25,9 +30,10 @@ class ZenohTransport:
         self.bus = bus
         self.node = node
         self.run = bus.keys.run
-        self.inbox: queue.Queue[Envelope] = queue.Queue()
+        self.inbox: queue.SimpleQueue[Envelope] = queue.SimpleQueue()
         self._lost: set[int] = set()
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()  # a frame is stamped and sent as one step
         self.state_pub = bus.publisher(bus.keys.state(node))
         self.complete_pub = bus.publisher(bus.keys.round_complete(node))
 
@@ -47,13 +53,22 @@ class ZenohTransport:
         bus.watch_alive("exchange", on_alive)
 
     def _on_state(self, msg: State) -> None:
-        self.inbox.put(Envelope("state", msg.sender, msg.round, msg.params.numpy().copy()))
+        self.inbox.put(Envelope("state", msg.sender, msg.round, msg.params.numpy()))  # read-only, no copy
 
     def _on_complete(self, msg: RoundComplete) -> None:
         self.inbox.put(Envelope("complete", msg.sender, msg.round))
 
+    def new_state(self, n: int) -> np.ndarray:
+        """A vector for the node to write its next State into: the payload it will be sent in."""
+        return StateFrame.new(self.run, self.node, n)
+
     def send_state(self, round: int, params: np.ndarray) -> None:
-        self.state_pub.put_bytes(encode_state(self.run, self.node, round, params))
+        frame = StateFrame.of(params)
+        if frame is None or frame.run != self.run or frame.sender != self.node:
+            self.state_pub.put_bytes(encode_state(self.run, self.node, round, params))
+            return
+        with self._send_lock:
+            self.state_pub.put_bytes(frame.stamp(round))
 
     def send_round_complete(self, round: int) -> None:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))

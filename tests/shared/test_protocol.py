@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from swarmmap.shared.protocol import (
+    STATE_ALIGN,
     Keys,
     Metrics,
     ProtocolError,
@@ -14,8 +15,10 @@ from swarmmap.shared.protocol import (
     Samples,
     Scan,
     State,
+    StateFrame,
     Tensor,
     WorldMap,
+    all_finite,
     decode,
     encode,
     encode_state,
@@ -152,11 +155,15 @@ def test_keys_are_built_under_prefix_and_run_and_refuse_wildcards():
 
 @pytest.mark.parametrize("n", [0, 3, 70, 20000, 527361])
 def test_state_fast_path_writes_and_reads_what_the_generic_codec_does(n):
-    """Algorithm 1's hot path: encode_state is encode(State(...)) byte for byte, and decode takes
-    it back without a copy, with the same fields and values."""
+    """Algorithm 1's hot path: encode_state writes the msgpack map any reader takes for the
+    State, with its vector aligned in the payload, and decode takes it back without a copy,
+    with the same fields and values."""
     params = np.random.default_rng(n).standard_normal(n).astype(np.float32)
     payload = encode_state("run-1", 3, 17, params)
-    assert payload == encode(State(run="run-1", sender=3, round=17, params=Tensor.of(params, "<f4")))
+    state = State(run="run-1", sender=3, round=17, params=Tensor.of(params, "<f4"))
+    assert msgpack.unpackb(payload) == state.model_dump(mode="python")
+    assert payload == encode(state)
+    assert (len(payload) - params.nbytes) % STATE_ALIGN == 0, "the vector must start aligned"
     msg = decode(payload, State, run="run-1", sender=3)
     assert (msg.sender, msg.round, msg.params.shape) == (3, 17, [n])
     np.testing.assert_array_equal(msg.params.numpy(), params)
@@ -183,7 +190,7 @@ def test_state_fast_path_refuses_what_the_generic_codec_refuses():
     with pytest.raises(ProtocolError):  # bytes appended after the vector
         decode(good + b"\x00\x00\x00\x00", State, run="run-1", sender=3)
     with pytest.raises(ProtocolError):  # the length field says more than is there
-        decode(good.replace(b"\xc5\x01\x90", b"\xc5\x01\x94"), State, run="run-1", sender=3)
+        decode(good.replace(b"\xc6\x00\x00\x01\x90", b"\xc6\x00\x00\x01\x94"), State, run="run-1", sender=3)
     with pytest.raises(ValueError):
         encode_state("bad run name", 3, 17, params)
 
@@ -192,3 +199,42 @@ def test_state_fast_path_takes_huge_finite_values_through_the_full_check():
     params = np.full(10, 3e38, np.float32)  # finite, but its dot product overflows
     msg = decode(encode_state("run-1", 0, 1, params), State, run="run-1", sender=0)
     np.testing.assert_array_equal(msg.params.numpy(), params)
+
+
+@pytest.mark.parametrize("run", ["r", "run-1", "x" * 40, "y" * 64])
+def test_a_state_frame_is_the_payload_of_encode_state_without_a_copy(run):
+    """A learner writes its parameters into a StateFrame's vector; stamping a round makes the
+    frame the exact payload encode_state writes, for any run name and any round."""
+    values = np.random.default_rng(1).standard_normal(1000).astype(np.float32)
+    vector = StateFrame.new(run, 42, values.size)
+    vector[:] = values
+    frame = StateFrame.of(vector)
+    assert frame is not None
+    for r in (0, 1, 200, 70000, 10**9):
+        assert bytes(frame.stamp(r)) == encode_state(run, 42, r, values)
+        msg = decode(bytes(frame), State, run=run, sender=42)
+        assert msg.round == r
+        np.testing.assert_array_equal(msg.params.numpy(), values)
+    assert StateFrame.of(vector[1:]) is None and StateFrame.of(values) is None, "only a frame's whole vector is one"
+    with pytest.raises(ValueError):
+        frame.stamp(10**9 + 1)
+    with pytest.raises(ValueError):
+        StateFrame.new("bad run", 1, 10)
+
+
+@pytest.mark.parametrize("n", [10, 5000, 527361])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_all_finite_finds_any_non_finite_value_and_takes_huge_finite_ones(n, bad):
+    """The receivers' finiteness check (one summing pass where torch is loaded, numpy's mask
+    otherwise) is exact: a sum that overflows is no reason to refuse."""
+    import torch  # noqa: F401  (loaded, as in a learner: the summing pass)
+
+    values = np.random.default_rng(n).standard_normal(n).astype(np.float32)
+    assert all_finite(values)
+    for at in (0, n // 2, n - 1):
+        spoiled = values.copy()
+        spoiled[at] = bad
+        assert not all_finite(spoiled)
+    huge = np.full(n, 3e38, np.float32)
+    huge[::2] *= -1 if n % 2 else 1
+    assert all_finite(huge)
