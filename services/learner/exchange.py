@@ -134,7 +134,10 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     ``rejoin_wait`` seconds, the time a launcher needs to restart it), or that stayed silent for
     ``silent_after`` seconds while this node waited on it, is left out: the round finishes with
     the neighbours the node has. It is taken back once it sends a State of the round at hand or
-    a later one. A node ``resumed`` from a checkpoint may be behind its team. Each node keeps the
+    a later one. Silence is counted while the node waits, not while it computes: a long update
+    or evaluation (a big model, a starved CPU) does not make its neighbours look gone, whose
+    States meanwhile wait in its inbox. A node ``resumed`` from a checkpoint may be behind its
+    team. Each node keeps the
     States it sent in its last ``keep_rounds`` rounds and, when a neighbour sends a State of an
     older round, sends them again: the resumed node replays the rounds it lost with exactly the
     States its neighbours had (and comes back where it would have been). Further behind than
@@ -216,7 +219,11 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             progressed = False
             peers = buf.states[rnd]
             if not updated and (active or not neighbours) and active <= peers.keys():
+                busy_since = time.monotonic()
                 state = node_update(rnd, state, {j: peers[j] for j in sorted(active)})
+                busy = time.monotonic() - busy_since
+                for j in heard:  # silence counts while this node listens, not while it computes
+                    heard[j] += busy  # (what the neighbours sent meanwhile waits in its inbox)
                 updated = True
                 send_complete()
                 progressed = True

@@ -27,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce
+from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce, warm_up
 from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, implausible, run_algorithm1
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
@@ -325,6 +325,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         learners = [RobotLearner(cfg, r, bus, device) for r in robots]
         for r in robots:
             bus.announce(r)
+        warm_up(s.optimizer)  # while the world starts and the robots drive
         world = bus.query(keys.world_map(), WorldMap, timeout=s.collect_timeout_s, stop=stop)
         if world is None:
             if stop.is_set():

@@ -290,3 +290,39 @@ def test_a_node_left_behind_catches_up_with_its_team_instead_of_waiting_forever(
     assert stats[2].caught_up == 1 and stats[2].rounds_done < rounds - 5, "node 2 should have jumped ahead"
     assert stats[0].rejoined >= 1 and stats[1].rejoined >= 1, "its neighbours should have taken it back"
     assert "left behind" in caplog.text
+
+
+def test_a_node_busy_computing_longer_than_silent_after_does_not_leave_out_its_neighbours():
+    """Round 0's update of every node takes longer than silent_after (a first optimizer step
+    that loads libraries, an evaluation, 32 learners on 2 cores): the neighbours' States that
+    arrived meanwhile wait in the inbox, so nobody is left out and every round has every
+    neighbour."""
+    graph, rounds = COMPLETE3, 6
+    init = {i: np.full(4, float(i)) for i in graph}
+    hub = MemoryHub(graph)
+    results, stats = {}, {i: ExchangeStats() for i in graph}
+
+    def slow_first(i):
+        update = mixing_update(i)
+
+        def step(k, theta, peers):
+            if k == 0:
+                threading.Event().wait(1.0 + 0.3 * i)  # longer than silent_after, and not all alike
+            return update(k, theta, peers)
+
+        return step
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], rounds, init[i], slow_first(i), hub.transport(i), stats=stats[i],
+                                    resend_after=5.0, linger=0.5, silent_after=0.6, peer_timeout=30)
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert sorted(results) == [0, 1, 2]
+    assert [stats[i].left_out for i in graph] == [0, 0, 0], "a busy node took its neighbours for gone"
+    ref = reference(graph, rounds, init)
+    for i in graph:
+        np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
