@@ -53,13 +53,14 @@ def step_flops(shape: list[int], batch: int, bayes: bool) -> float:
     return 3 * forward * batch
 
 
-def per_round(run_dir: Path, columns: dict[str, str]) -> dict[str, float]:
+def per_round(run_dir: Path, columns: dict[str, str], from_round: int = 0) -> dict[str, float]:
     """Seconds a round of each cumulative Metrics column (name -> column of metrics.csv): per
-    learner, the change between its first and last Metrics over the rounds between them; the
-    mean over learners."""
+    learner, the change between its first Metrics at or after ``from_round`` and its last, over
+    the rounds between them; the mean over learners."""
     per_robot: dict[str, list[dict]] = {}
     for r in csv.DictReader((run_dir / "metrics.csv").open()):
-        per_robot.setdefault(r["robot"], []).append(r)
+        if int(r["round"]) >= from_round:
+            per_robot.setdefault(r["robot"], []).append(r)
     split: dict[str, list[float]] = {name: [] for name in columns}
     for mine in per_robot.values():
         mine.sort(key=lambda r: int(r["round"]))

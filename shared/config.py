@@ -87,6 +87,8 @@ class WorldSettings(Section):
     sim_step_s: float = Field(0.1, gt=0, le=1, description="simulation time step (s)")
     time_scale: float = Field(0.0, ge=0, description="simulated seconds per wall second; 0 = as fast as the consumers take it")
     rooms_per_robot: int = Field(0, ge=0, description="planned paths: rooms each robot visits; 0 = about twice its share")
+    coverage_spacing_m: float = Field(2.5, gt=0.1, description="planned paths on a plan without room outlines (an image, a "
+                                      "ROS map): every reachable free cell lies within this much path of a target (m)")
     lidar_beams: int = Field(360, ge=1, le=4096, description="beams per scan")
     lidar_fov_deg: float = Field(360.0, gt=0, le=360, description="angular range of a scan (deg)")
     lidar_min_range_m: float = Field(0.12, ge=0, description="closest measurable range (m)")

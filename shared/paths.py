@@ -1,8 +1,10 @@
 """Robot paths: planned through free space on the occupancy grid, or read from waypoint files.
 
-:func:`plan_paths` picks a target in every room (its point farthest from walls), spreads the
-robots' start rooms over the plan, and lets each robot visit the nearest rooms that no
-teammate has visited yet (about twice its share, so tours overlap); a room nobody reached is
+:func:`plan_paths` picks a target in every room (its point farthest from walls; on a plan with
+no room outlines, such as an occupancy image or a ROS map, targets that cover its free space:
+:func:`coverage_targets`), spreads the robots' start rooms over the plan, and lets each robot
+visit the nearest rooms that no teammate has visited yet (about twice its share, so tours
+overlap); a room nobody reached is
 added to the tour that ends closest to it. Legs between targets are shortest paths on the
 grid (8-connected, cells at least ``clearance`` from walls, costs that keep robots away from
 walls), shortened where a straight line stays clear. :func:`interpolate_dinno` smooths waypoint
@@ -58,6 +60,7 @@ class GridPlanner:
 
     def __init__(self, grid: OccupancyGrid, clearance: float):
         self.grid = grid
+        self.clearance_m = clearance
         self.clear = grid.clearance()
         ok = self.clear >= clearance
         labels, n = ndimage.label(ok, structure=np.ones((3, 3)))
@@ -66,7 +69,7 @@ class GridPlanner:
         h, w = grid.grid.shape
         self.shape = (h, w)
         idx = np.arange(h * w).reshape(h, w)
-        rows, cols, weights = [], [], []
+        rows, cols, weights, steps = [], [], [], []
         res = grid.resolution
         penalty = 1.0 + 0.3 / np.maximum(self.clear, res)  # favour the middle of rooms and doors
         for dr, dc in NEIGHBOURS:
@@ -81,8 +84,10 @@ class GridPlanner:
             rows.append(ia)
             cols.append(ib)
             weights.append(step * (pa + pb) / 2)
-        self.graph = sparse.csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
-                                       shape=(h * w, h * w))
+            steps.append(np.full(len(ia), step))
+        edges = (np.concatenate(rows), np.concatenate(cols))
+        self.graph = sparse.csr_matrix((np.concatenate(weights), edges), shape=(h * w, h * w))
+        self.lengths = sparse.csr_matrix((np.concatenate(steps), edges), shape=(h * w, h * w))  # plain metres
 
     def cell(self, xy: np.ndarray) -> int:
         r, c, _ = self.grid.cells(np.asarray(xy)[None])
@@ -112,11 +117,66 @@ class GridPlanner:
         return np.asarray(out)
 
 
-def room_targets(plan: FloorPlan, planner: GridPlanner) -> list[int]:
-    """One reachable cell per room: the clearest one; rooms without a reachable cell are left out."""
+def reachable_cells(planner: GridPlanner) -> np.ndarray:
+    """The cells of the largest connected clear region (bool grid): where robots can drive."""
+    if not planner.ok.any():
+        return planner.ok
+    main = np.bincount(planner.labels[planner.ok]).argmax()
+    return planner.ok & (planner.labels == main)
+
+
+def coverage_targets(planner: GridPlanner, spacing: float, limit: int = 400) -> list[int]:
+    """Targets that cover the reachable free space of a plan without room outlines (an occupancy
+    image, a ROS map): farthest-point sampling in path distance (metres along the grid), so that
+    every reachable cell lies within ``spacing`` metres of path from a target (the searches stop
+    at twice that: a cell no target reaches within it counts as infinitely far, the first to be
+    covered); each new target is moved to the
+    clearest reachable cell near the farthest point (the middle of its room or corridor, not
+    the wall it is near)."""
+    reachable = reachable_cells(planner)
+    if not reachable.any():
+        return []
+    flat_ok = reachable.ravel()
+    clear = np.where(reachable, planner.clear, -1.0)
+    targets = [int(clear.argmax())]
+    reach = 2 * spacing  # a search stops there: beyond, the cells keep their distance to an older target (larger)
+
+    def distances(cell: int) -> np.ndarray:
+        return csgraph.dijkstra(planner.lengths, directed=False, indices=cell, limit=reach)
+
+    dist = distances(targets[0])
+    h, w = planner.shape
+    half = max(1, int(spacing / 2 / planner.grid.resolution))
+    while len(targets) < limit:
+        gap = np.where(flat_ok, dist, -1.0)
+        far = int(gap.argmax())
+        if not gap[far] > spacing:  # (an unreachable cell never counts: it is not in flat_ok)
+            break
+        r, c = divmod(far, w)
+        window = clear[max(0, r - half) : r + half + 1, max(0, c - half) : c + half + 1]
+        wr, wc = np.unravel_index(int(window.argmax()), window.shape)
+        target = (max(0, r - half) + wr) * w + max(0, c - half) + wc
+        new = distances(target)
+        if not new[far] < gap[far]:  # the clearest cell does not bring the farthest one closer
+            target, new = far, distances(far)
+        targets.append(int(target))
+        dist = np.minimum(dist, new)
+    return targets
+
+
+def room_targets(plan: FloorPlan, planner: GridPlanner, coverage_spacing: float = 2.5) -> list[int]:
+    """One reachable cell per room: the clearest one; rooms without a reachable cell are left out.
+    A plan without room outlines (a raster plan, whose one "room" is the whole image) gets
+    :func:`coverage_targets` instead, so that its robots drive through all of its free space."""
+    if plan.raster is not None and len(plan.rooms) <= 1:
+        targets = coverage_targets(planner, coverage_spacing)
+        if len(targets) < 2:
+            raise PlanError(plan.source, "no free space a robot can drive through: the reachable free region is smaller "
+                                         f"than {coverage_spacing} m across (robots keep {planner.clearance_m} m from "
+                                         "walls); check the map's scale and thresholds")
+        return targets
     pts, shape = planner.grid.centres()
-    main = np.bincount(planner.labels[planner.ok]).argmax() if planner.ok.any() else 0
-    reachable = planner.ok & (planner.labels == main)
+    reachable = reachable_cells(planner)
     targets = []
     for room in plan.rooms:
         inside = shapely.contains_xy(room, pts[:, 0], pts[:, 1]).reshape(shape) & reachable
@@ -129,10 +189,12 @@ def room_targets(plan: FloorPlan, planner: GridPlanner) -> list[int]:
 
 
 def plan_paths(plan: FloorPlan, grid: OccupancyGrid, robots: int, seed: int, rooms_per_robot: int = 0,
-               clearance: float = 0.2) -> list[np.ndarray]:
-    """One waypoint path (K, 2) in metres per robot; together they visit every reachable room."""
+               clearance: float = 0.2, coverage_spacing: float = 2.5) -> list[np.ndarray]:
+    """One waypoint path (K, 2) in metres per robot; together they visit every reachable room
+    (or, on a plan without room outlines, come within ``coverage_spacing`` of every reachable
+    cell)."""
     planner = GridPlanner(grid, clearance)
-    targets = room_targets(plan, planner)
+    targets = room_targets(plan, planner, coverage_spacing)
     n = len(targets)
     dist, pred = csgraph.dijkstra(planner.graph, directed=False, indices=targets, return_predecessors=True)
     d = dist[:, targets]
@@ -176,6 +238,26 @@ def plan_paths(plan: FloorPlan, grid: OccupancyGrid, robots: int, seed: int, roo
         paths.append(np.concatenate(points))
     check_paths(paths, grid, plan.source)
     return paths
+
+
+def coverage(paths: list[np.ndarray], grid: OccupancyGrid, radius: float) -> float:
+    """Share of the free cells within ``radius`` (straight line; walls not considered) of a path:
+    what the robots could scan, at most, with a LiDAR of that range."""
+    near = np.zeros(grid.grid.shape, dtype=bool)
+    for path in paths:
+        if len(path) == 0:
+            continue
+        dense = [path[:1]]
+        for a, b in zip(path[:-1], path[1:]):
+            n = max(1, int(np.linalg.norm(b - a) / grid.resolution))
+            dense.append(a + np.linspace(0, 1, n + 1)[1:, None] * (b - a))
+        r, c, inside = grid.cells(np.concatenate(dense))
+        near[r[inside], c[inside]] = True
+    if not near.any():
+        return 0.0
+    within = ndimage.distance_transform_edt(~near) * grid.resolution <= radius
+    free = grid.grid == 0
+    return float((within & free).sum() / max(free.sum(), 1))
 
 
 def path_length(path: np.ndarray) -> float:
