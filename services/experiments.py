@@ -78,8 +78,9 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
     from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
     from swarmmap.shared.uncertainty import observed_mask, score_map
 
-    with np.load(run_dir / "groundtruth.npz") as gt:
-        grid = OccupancyGrid(gt["grid"], float(gt["resolution"]), tuple(gt["origin"]))
+    with np.load(run_dir / "groundtruth.npz") as gt:  # 0 free, 1 occupied, 2 unknown (never scored)
+        grid = OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]),
+                             unknown=gt["grid"] == 2)
     files = sorted((run_dir / "data").glob("robot-*.npz"))
     points = np.concatenate([np.load(f)["points"] for f in files]) if files else np.zeros((0, 2))
     references: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (resolution, shape, origin) -> truth, observed
@@ -89,9 +90,12 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
         maps = load_maps(run_dir, robot)
         res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
         if (res, shape, origin) not in references:  # every robot's map shares its grid, normally
-            truth = grid.resample(res).grid[: shape[0], : shape[1]] > 0
-            references[res, shape, origin] = truth, observed_mask(shape, origin, res, points, radius_m)
-        scores[robot] = score_map(maps["mean"], maps["std"], *references[res, shape, origin])
+            fine = grid.resample(res)
+            truth = fine.grid[: shape[0], : shape[1]] > 0
+            known = np.ones(shape, bool) if fine.unknown is None else ~fine.unknown[: shape[0], : shape[1]]
+            references[res, shape, origin] = truth, observed_mask(shape, origin, res, points, radius_m), known
+        truth, observed, known = references[res, shape, origin]
+        scores[robot] = score_map(maps["mean"][known], maps["std"][known], truth[known], observed[known])
     return scores
 
 

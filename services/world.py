@@ -24,6 +24,10 @@ from pathlib import Path
 
 import numpy as np
 import pybullet
+import shapely
+import yaml
+from PIL import Image
+from scipy import ndimage
 
 from swarmmap.services.robot import LIDAR_LINK, write_urdf
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
@@ -76,8 +80,29 @@ def export(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, folder: Path) -
     buf = io.BytesIO()
     np.savez_compressed(buf, grid=grid.grid, resolution=grid.resolution, origin=np.asarray(grid.origin))
     atomic_write_bytes(folder / "occupancy.npz", buf.getvalue())
-    log.info("exported %s: plan.stl (%d triangles, watertight %s), occupancy %s at %.3f m", folder, len(mesh.faces),
-             mesh.is_watertight, grid.grid.shape, grid.resolution)
+    write_ros_map(plan, grid, folder)
+    log.info("exported %s: plan.stl (%d triangles, watertight %s), occupancy %s at %.3f m, ROS map map.yaml + map.pgm",
+             folder, len(mesh.faces), mesh.is_watertight, grid.grid.shape, grid.resolution)
+
+
+def write_ros_map(plan: FloorPlan, grid: OccupancyGrid, folder: Path) -> None:
+    """The ground truth as a ROS ``map_server`` map (``map.yaml`` + ``map.pgm``, trinary, as
+    map_saver writes them: 254 free, 0 occupied, 205 unknown). Unknown: the grid's own unknown
+    cells and, for a plan with wall outlines, the occupied cells outside every wall (the space
+    around the building, which no robot could map)."""
+    pixels = np.where(grid.grid > 0, 0, 254).astype(np.uint8)
+    unknown = grid.unknown.copy() if grid.unknown is not None else np.zeros(grid.grid.shape, bool)
+    if plan.raster is None:
+        pts, shape = grid.centres()
+        wall = shapely.contains_xy(plan.walls, pts[:, 0], pts[:, 1]).reshape(shape)
+        unknown |= (grid.grid > 0) & ~ndimage.binary_dilation(wall, iterations=1)
+    pixels[unknown] = 205
+    img = io.BytesIO()
+    Image.fromarray(pixels[::-1]).save(img, format="PPM")  # image row 0 is the map's top
+    atomic_write_bytes(folder / "map.pgm", img.getvalue())
+    doc = {"image": "map.pgm", "resolution": float(grid.resolution), "origin": [float(grid.origin[0]), float(grid.origin[1]), 0.0],
+           "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
+    atomic_write_bytes(folder / "map.yaml", yaml.safe_dump(doc, sort_keys=False).encode())
 
 
 @dataclass
@@ -172,13 +197,21 @@ class Simulation:
         pybullet.disconnect(self.client)
 
 
+def wire_grid(grid: OccupancyGrid) -> np.ndarray:
+    """The grid as WorldMap carries it: 0 free, 1 occupied, 2 unknown (a ROS map's)."""
+    out = grid.grid.astype(np.uint8)
+    if grid.unknown is not None:
+        out = np.where(grid.unknown, np.uint8(2), out)
+    return out
+
+
 def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None = None) -> WorldMap:
     """The ground truth, validation set and final robot positions that the world serves on ``world/map``."""
     w = cfg.world
     pts, labels = validation_set(grid, w.val_scans, w.val_beams, w.lidar_max_range_m,
                                  cfg.lidar.samples_per_beam, cfg.seed, cfg.lidar.occupied_depth_m)
     return WorldMap(run=cfg.run_id, sender=0, resolution=grid.resolution, origin=list(grid.origin),
-                    grid=Tensor.of(grid.grid, "|u1"), val_points=Tensor.of(pts, "<f4"),
+                    grid=Tensor.of(wire_grid(grid), "|u1"), val_points=Tensor.of(pts, "<f4"),
                     val_labels=Tensor.of(labels, "<f4"), robots=cfg.robots,
                     positions=None if paths is None else Tensor.of(np.array([p[-1] for p in paths]), "<f4"))
 

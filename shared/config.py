@@ -66,7 +66,8 @@ class RouterSettings(Section):
 class WorldSettings(Section):
     """The world simulator: floor plan, robots, paths and the simulated LiDAR."""
 
-    floorplan: str = Field("procedural", description="procedural, a CubiCasa5K model.svg, or a DiNNO occupancy .png")
+    floorplan: str = Field("procedural", description="procedural, a CubiCasa5K model.svg, a DiNNO occupancy .png, "
+                                                      "or a ROS map_server .yaml")
     waypoints: str | None = Field(None, description="folder of .npy waypoint paths, one per robot (DiNNO normalised "
                                                     "coordinates for a .png plan, metres otherwise); none = plan paths")
     pixels_per_metre: float = Field(100.0, gt=0, description="scale of a .png plan")

@@ -38,8 +38,8 @@ class PlanError(ValueError):
 class FloorPlan:
     """Solid walls (doors cut out), free rooms, door openings, and optional waypoint paths.
 
-    ``kind`` is ``procedural``, ``cubicasa`` or ``dinno``; a raster plan (``dinno``) carries its
-    ground-truth grid in ``raster``."""
+    ``kind`` is ``procedural``, ``cubicasa``, ``dinno`` or ``rosmap``; a raster plan (``dinno``,
+    ``rosmap``) carries its ground-truth grid in ``raster``."""
 
     name: str
     source: str
@@ -111,6 +111,7 @@ class OccupancyGrid:
     grid: np.ndarray
     resolution: float
     origin: tuple[float, float]
+    unknown: np.ndarray | None = None  # cells nobody knows (a ROS map's): solid in the world, never ground truth
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -126,6 +127,9 @@ class OccupancyGrid:
                                     dtype=np.uint8), resolution, self.origin)
         pts, shape = out.centres()
         out.grid[:] = self.occupied(pts).reshape(shape)
+        if self.unknown is not None:
+            rows, cols, inside = self.cells(pts)
+            out.unknown = (self.unknown[rows, cols] & inside).reshape(shape)
         return out
 
     def clearance(self) -> np.ndarray:

@@ -1,5 +1,6 @@
-"""Floor plans from every source behind one spec: ``procedural``, a CubiCasa5K ``model.svg``, or
-a DiNNO occupancy PNG (with its waypoint ``.npy`` loops).
+"""Floor plans from every source behind one spec: ``procedural``, a CubiCasa5K ``model.svg``, a
+DiNNO occupancy PNG (with its waypoint ``.npy`` loops), or a ROS ``map_server`` map (its
+``.yaml``, with unknown cells).
 
     plan = load_floorplan("../shared/data/cubicasa5k/353/model.svg", cfg.world, seed=0)
     plan = load_floorplan("floor_img.png", cfg.world, seed=0)   # + world.waypoints = a folder of .npy
@@ -15,10 +16,12 @@ naming the file.
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 from pathlib import Path
 
 import numpy as np
+import yaml
 from PIL import Image, UnidentifiedImageError
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
@@ -55,8 +58,11 @@ def load_floorplan(spec: str, settings: WorldSettings, seed: int) -> FloorPlan:
             plan = load_cubicasa_plan(path)
         elif suffix == ".png":
             plan = load_dinno_png(path, settings.pixels_per_metre, settings.dinno_border_px, settings.grid_resolution_m)
+        elif suffix in (".yaml", ".yml"):
+            plan = load_ros_map(path, settings.grid_resolution_m)
         else:
-            raise PlanError(spec, f"unknown floor-plan kind {suffix or '(no suffix)'!r}: use procedural, a .svg or a .png")
+            raise PlanError(spec, f"unknown floor-plan kind {suffix or '(no suffix)'!r}: use procedural, a .svg, a .png "
+                                  "or a ROS map_server .yaml")
     if settings.waypoints:
         plan.paths = load_waypoints(Path(settings.waypoints), plan)
     return plan
@@ -104,6 +110,90 @@ def load_dinno_png(path: Path, pixels_per_metre: float, border_px: int, mesh_res
     # One "room", the whole image: the planner may go anywhere free.
     return FloorPlan(path.name, str(path), grid_walls(coarse), [box(*coarse.bounds)], ["free space"], raster=native,
                      kind="dinno", image_size=(nx, ny))
+
+
+ROS_MODES = ("trinary", "scale", "raw")
+
+
+def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
+    """A ROS ``map_server`` map: its ``.yaml`` (``image``, ``resolution``, ``origin``,
+    ``occupied_thresh``, ``free_thresh``, ``negate``, ``mode``) and the image it names (relative
+    to the YAML's folder), read as map_server reads it.
+
+    Modes ``trinary`` and ``scale``: a pixel's occupancy is ``(255 - p) / 255`` (``p / 255`` with
+    ``negate``); above ``occupied_thresh`` the cell is occupied, below ``free_thresh`` free, and in
+    between unknown (``scale`` would make those cells probabilities; a ground truth has none).
+    Mode ``raw``: the pixel is the occupancy in percent, and values above 100 are unknown. A
+    transparent pixel is unknown. Unknown cells are solid in the simulated world (robots do not
+    drive there and the LiDAR stops at them) and never ground truth: the validation set and the
+    scores leave them out. Image row 0 is the map's top; ``origin`` is the pose of its lower-left
+    pixel (a rotated origin, yaw not 0, is refused)."""
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise PlanError(path, f"not a readable ROS map YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise PlanError(path, "a ROS map YAML must be a mapping with image, resolution and origin")
+    missing = [k for k in ("image", "resolution", "origin") if k not in doc]
+    if missing:
+        raise PlanError(path, f"ROS map YAML lacks {', '.join(missing)}")
+    mode = doc.get("mode", "trinary")
+    if mode not in ROS_MODES:
+        raise PlanError(path, f"unknown mode {mode!r}: map_server knows {', '.join(ROS_MODES)}")
+
+    def number(key: str, default: float | None = None, lo: float = -math.inf, hi: float = math.inf) -> float:
+        value = doc.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi or not math.isfinite(value):
+            raise PlanError(path, f"{key} must be a number in [{lo}, {hi}], got {value!r}")
+        return float(value)
+
+    res = number("resolution", lo=1e-4, hi=100.0)
+    if res <= 0:
+        raise PlanError(path, "resolution must be positive")
+    occ_t, free_t = number("occupied_thresh", 0.65, 0.0, 1.0), number("free_thresh", 0.196, 0.0, 1.0)
+    if free_t >= occ_t:
+        raise PlanError(path, f"free_thresh {free_t} must be below occupied_thresh {occ_t}")
+    negate = doc.get("negate", 0)
+    if negate not in (0, 1, True, False):
+        raise PlanError(path, f"negate must be 0 or 1, got {negate!r}")
+    origin = doc["origin"]
+    if (not isinstance(origin, list) or len(origin) not in (2, 3)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin)):
+        raise PlanError(path, f"origin must be [x, y, yaw] in metres and radians, got {origin!r}")
+    if len(origin) == 3 and abs(origin[2]) > 1e-9:
+        raise PlanError(path, f"a rotated map (origin yaw {origin[2]}) is not supported: rotate the image instead")
+    image = doc["image"]
+    if not isinstance(image, str) or not image:
+        raise PlanError(path, f"image must name the map's image file, got {image!r}")
+    image_path = Path(image) if Path(image).is_absolute() else path.parent / image
+    try:
+        with Image.open(image_path) as img:
+            if img.width * img.height > MAX_IMAGE_PIXELS:
+                raise PlanError(image_path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
+            alpha = np.asarray(img.getchannel("A")) if "A" in img.getbands() else None
+            pixels = np.asarray(img.convert("L")).astype(np.float64)
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise PlanError(image_path, f"not a readable map image: {exc}") from None
+    if mode == "raw":
+        unknown = pixels > 100
+        occ = pixels / 100.0
+    else:
+        occ = pixels / 255.0 if negate else (255.0 - pixels) / 255.0
+        unknown = np.zeros(pixels.shape, dtype=bool)
+    occupied = ~unknown & (occ > occ_t)
+    free = ~unknown & (occ < free_t)
+    unknown = ~(occupied | free)
+    if alpha is not None:
+        unknown |= alpha == 0
+        free &= alpha != 0
+    if not free.any():
+        raise PlanError(path, f"the map has no free cell (occupancy below free_thresh {free_t}); check negate and the thresholds")
+    ny, nx = free.shape
+    native = OccupancyGrid((~free)[::-1].astype(np.uint8), res, (float(origin[0]), float(origin[1])),
+                           unknown=unknown[::-1].copy())
+    coarse = native.resample(max(mesh_resolution, res))
+    return FloorPlan(path.name, str(path), grid_walls(coarse), [box(*coarse.bounds)], ["free space"], raster=native,
+                     kind="rosmap", image_size=(nx, ny))
 
 
 def grid_walls(grid: OccupancyGrid):

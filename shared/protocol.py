@@ -275,7 +275,8 @@ class Metrics(Message):
 class WorldMap(Message):
     """The world's reply on ``world/map``: the ground-truth occupancy grid and a validation set.
 
-    ``grid[r, c]`` (1 = occupied) covers x in [origin_x + c*res, +res) and y in
+    ``grid[r, c]`` (0 free, 1 occupied, 2 unknown: a ROS map's cells nobody knows, solid in the
+    world and never ground truth) covers x in [origin_x + c*res, +res) and y in
     [origin_y + r*res, +res): row 0 is the southern edge (y up). ``val_labels`` come from the
     ground truth, never from a sensor. ``positions`` (robots, 2) are where the robots stand
     after their traversal (for distance-based communication graphs). ``sender`` is 0."""

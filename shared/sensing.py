@@ -104,7 +104,8 @@ def raycast_grid(grid: OccupancyGrid, origins: np.ndarray, angles: np.ndarray, m
 
 def validation_set(grid: OccupancyGrid, scans: int, beams: int, max_range: float, samples_per_beam: int,
                    seed: int, occupied_depth: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
-    """DiNNO's validation data: beams from random free poses, labelled from the ground truth."""
+    """DiNNO's validation data: beams from random free poses, labelled from the ground truth
+    (samples in the grid's unknown cells, where it has any, left out)."""
     rng = np.random.default_rng(seed + 104729)
     poses = grid.random_free(scans, rng, clearance=0.15)
     angles = rng.uniform(-np.pi, np.pi, size=(scans, 1)) + beam_angles(beams)[None, :]
@@ -118,4 +119,8 @@ def validation_set(grid: OccupancyGrid, scans: int, beams: int, max_range: float
     labels_all = np.concatenate(labels)
     # Labels come from the grid itself, so a sample never disagrees with the ground truth.
     labels_all = grid.occupied(points).astype(np.float32)
+    if grid.unknown is not None:  # a cell nobody knows is no ground truth
+        rows, cols, _ = grid.cells(points)
+        known = ~grid.unknown[rows, cols]
+        points, labels_all = points[known], labels_all[known]
     return points, labels_all

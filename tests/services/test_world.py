@@ -62,7 +62,7 @@ def test_batched_and_per_robot_rays_agree(room_sim):
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
-def test_export_writes_stl_png_and_npz(tmp_path):
+def test_export_writes_stl_png_npz_and_a_ros_map(tmp_path):
     out = tmp_path / "export"
     proc = subprocess.run([*SWARMMAP, "world", "--preset", "smoke", "--export",
                            str(out)], capture_output=True, text=True, timeout=120)
@@ -73,6 +73,16 @@ def test_export_writes_stl_png_and_npz(tmp_path):
     assert npz["grid"].shape == np.asarray(Image.open(out / "occupancy.png")).shape
     assert float(npz["resolution"]) == pytest.approx(0.05) and npz["origin"].shape == (2,)
     assert 0.1 < npz["grid"].mean() < 0.6
+    # the same ground truth as a ROS map, read back as map_server would: free and walls as they
+    # were, the space around the building unknown (and never ground truth)
+    from swarmmap.shared.config import WorldSettings
+    from swarmmap.shared.plans import load_floorplan
+
+    back = load_floorplan(str(out / "map.yaml"), WorldSettings(), 0).raster
+    assert back.resolution == pytest.approx(0.05) and back.origin == pytest.approx(tuple(npz["origin"]))
+    np.testing.assert_array_equal(back.grid, npz["grid"])
+    assert back.unknown.any() and not (back.unknown & (npz["grid"] == 0)).any()
+    assert back.unknown[0].all() and back.unknown[-1].all(), "the margin around the building is unknown"
 
 
 def test_bad_floorplan_stops_the_world_with_its_name(tmp_path):
