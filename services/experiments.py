@@ -43,7 +43,7 @@ STRATEGIES = ("uniform-l2", "separate-l2", "separate-kl")
 # BNN round of 7 agents takes about 1.7 s on 2 CPU cores, so 2 seeds x 3 strategies of 300
 # rounds take about an hour; the single kl-sweep agent has converged by 400.
 EXPERIMENT_ROUNDS = {("demo", "kl-sweep"): 400, ("demo", "regularization"): 300}
-SCORE_KEYS = ("nll", "ece", "accuracy", "auroc_error", "std_observed", "std_unobserved", "std_ratio")
+SCORE_KEYS = ("nll", "ece", "accuracy", "auroc_error", "auroc_unobserved", "std_observed", "std_unobserved", "std_ratio")
 
 
 # ----------------------------------------------------------------------------- one run

@@ -9,6 +9,8 @@ user asks of an uncertainty map:
   occupancy; the cell-weighted gap between the bin's mean prediction and its true frequency).
 - ``auroc_error``: how well the std ranks the cells where the map is wrong (mean on the wrong
   side of 0.5) above the cells where it is right: 1 is perfect, 0.5 is no better than chance.
+- ``auroc_unobserved``: how well the std ranks the cells no robot saw above the cells they saw:
+  the question of the paper ("is the std high where nobody looked?"), 1 perfect, 0.5 chance.
 - ``std_observed`` / ``std_unobserved``: mean std over cells within ``radius`` of a training
   point (the robots saw them) and over the cells no robot saw, with ``std_ratio`` =
   unobserved / observed: above 1 means the map is more uncertain where it has no data.
@@ -69,5 +71,6 @@ def score_map(mean: np.ndarray, std: np.ndarray, truth: np.ndarray, observed: np
     s_obs = float(std[observed].mean()) if observed.any() else float("nan")
     s_un = float(std[~observed].mean()) if (~observed).any() else float("nan")
     return {"nll": float(nll.mean()), "ece": calibration_error(mean, truth), "accuracy": float(1 - wrong.mean()),
-            "auroc_error": auroc(std, wrong), "std_observed": s_obs, "std_unobserved": s_un,
+            "auroc_error": auroc(std, wrong), "auroc_unobserved": auroc(std, ~observed),
+            "std_observed": s_obs, "std_unobserved": s_un,
             "std_ratio": s_un / s_obs if s_obs > 0 else float("nan"), "observed_fraction": float(observed.mean())}

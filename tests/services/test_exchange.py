@@ -25,6 +25,17 @@ def mixing_update(node: int):
     return update
 
 
+def slowed_update(node: int, seconds):
+    """mixing_update that first takes ``seconds(round)`` of compute (a slow or starved node)."""
+    update = mixing_update(node)
+
+    def step(k, theta, peers):
+        threading.Event().wait(seconds(k))
+        return update(k, theta, peers)
+
+    return step
+
+
 def reference(graph, rounds, init):
     """The synchronous in-process loop: every node updates from everyone's round-k state."""
     thetas = dict(init)
@@ -265,13 +276,7 @@ def test_a_node_left_behind_catches_up_with_its_team_instead_of_waiting_forever(
     results, stats = {}, {i: ExchangeStats() for i in graph}
 
     def slow(i):
-        update = mixing_update(i)
-
-        def step(k, theta, peers):
-            threading.Event().wait(0.05)  # 80 rounds take the others about 4 s
-            return update(k, theta, peers)
-
-        return step
+        return slowed_update(i, lambda k: 0.05)  # 80 rounds take the others about 4 s
 
     def node(i):
         results[i] = run_algorithm1(i, graph[i], rounds, init[i], slow(i), hub.transport(i), stats=stats[i],
@@ -303,14 +308,7 @@ def test_a_node_busy_computing_longer_than_silent_after_does_not_leave_out_its_n
     results, stats = {}, {i: ExchangeStats() for i in graph}
 
     def slow_first(i):
-        update = mixing_update(i)
-
-        def step(k, theta, peers):
-            if k == 0:
-                threading.Event().wait(1.0 + 0.3 * i)  # longer than silent_after, and not all alike
-            return update(k, theta, peers)
-
-        return step
+        return slowed_update(i, lambda k: 1.0 + 0.3 * i if k == 0 else 0.0)  # > silent_after, and not all alike
 
     def node(i):
         results[i] = run_algorithm1(i, graph[i], rounds, init[i], slow_first(i), hub.transport(i), stats=stats[i],

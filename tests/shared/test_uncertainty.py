@@ -45,6 +45,8 @@ def test_score_map_reports_more_std_where_unobserved():
     assert math.isclose(s["nll"], -math.log(0.9), rel_tol=1e-6)
     assert math.isclose(s["std_ratio"], 20.0, rel_tol=1e-6)
     assert s["observed_fraction"] == 0.5
+    assert s["auroc_unobserved"] == 1.0  # every unseen cell more uncertain than every seen one
+    assert score_map(mean, np.where(observed, 0.2, 0.01), truth, observed)["auroc_unobserved"] == 0.0
     assert math.isnan(s["auroc_error"])  # no error to find
     wrong = mean.copy()
     wrong[3, 3] = 0.8  # a confident mistake where the std is high
