@@ -60,7 +60,7 @@ def robot_paths(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid) -> list[np
             raise PlanError(cfg.world.waypoints, f"{len(plan.paths)} waypoint paths for {cfg.robots} robots")
         return plan.paths[: cfg.robots]
     paths = plan_paths(plan, grid, cfg.robots, cfg.seed, cfg.world.rooms_per_robot, cfg.world.robot_clearance_m,
-                       cfg.world.coverage_spacing_m)
+                       cfg.world.coverage_spacing_m, cfg.world.rooms)
     lengths = [path_length(p) for p in paths]
     if max(lengths) < MIN_PATH_M:
         raise PlanError(plan.source, f"no usable path: the planned paths are {', '.join(f'{v:.1f}' for v in lengths)} m "
@@ -232,6 +232,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     map_payload = encode(world_map_message(cfg, grid, paths))
     sim = Simulation(plan, paths, w)
     x0, y0, x1, y1 = plan.bounds
+    log.info("rooms: %s", ", ".join(f"{i} {name}" for i, name in enumerate(plan.room_names)))
+    log.info("doors: %s", ", ".join(f"{i} at ({d.centroid.x:.1f}, {d.centroid.y:.1f})" for i, d in enumerate(plan.doors)) or "none")
+    if plan.closed:
+        log.info("doors closed: %s (the rooms behind them stay unseen)", plan.closed)
     log.info("plan %s (%s): %d rooms, %d doors, %.1f x %.1f m; paths %s m; free space within LiDAR range of a path: "
              "%s (team %.0f%%)", plan.name, plan.kind, len(plan.rooms), len(plan.doors), x1 - x0, y1 - y0,
              ", ".join(f"{r.length:.1f}" for r in sim.robots),

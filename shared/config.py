@@ -88,6 +88,11 @@ class WorldSettings(Section):
     sim_step_s: float = Field(0.1, gt=0, le=1, description="simulation time step (s)")
     time_scale: float = Field(0.0, ge=0, description="simulated seconds per wall second; 0 = as fast as the consumers take it")
     rooms_per_robot: int = Field(0, ge=0, description="planned paths: rooms each robot visits; 0 = about twice its share")
+    rooms: list[int] = Field(default_factory=list, description="planned paths: the rooms (numbers as the world logs them) "
+                             "robots may visit; empty = all")
+    closed_doors: list[int] = Field(default_factory=list, description="doors to close (numbers as the world logs them): "
+                                    "the rooms behind them stay unseen")
+    closed_door_fraction: float = Field(0.0, ge=0, le=1, description="share of the other doors to close, drawn with the run's seed")
     coverage_spacing_m: float = Field(2.5, gt=0.1, description="planned paths on a plan without room outlines (an image, a "
                                       "ROS map): every reachable free cell lies within this much path of a target (m)")
     lidar_beams: int = Field(360, ge=1, le=4096, description="beams per scan")

@@ -51,6 +51,7 @@ class FloorPlan:
     paths: list[np.ndarray] | None = None
     kind: str = "procedural"
     image_size: tuple[int, int] | None = None  # raster plans: (width, height) in pixels
+    closed: list[int] = field(default_factory=list)  # doors closed (numbers in the plan's original door list)
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -170,6 +171,25 @@ class OccupancyGrid:
         x = self.origin[0] + (cols[pick] + jitter[:, 0]) * self.resolution
         y = self.origin[1] + (rows[pick] + jitter[:, 1]) * self.resolution
         return np.stack([x, y], axis=1)
+
+
+def close_doors(plan: FloorPlan, fraction: float = 0.0, named: list[int] | None = None, seed: int = 0) -> list[int]:
+    """Close doors of ``plan`` in place: the ones numbered in ``named`` (their order in
+    ``plan.doors``) and, of the rest, a seeded ``fraction`` (rounded to the nearest count). A
+    closed door is wall again, so the rooms behind it can stay unseen. Returns the closed doors'
+    numbers; a number that names no door raises PlanError."""
+    named = sorted(set(named or []))
+    bad = [d for d in named if not 0 <= d < len(plan.doors)]
+    if bad:
+        raise PlanError(plan.source, f"door(s) {bad} do not exist: the plan has {len(plan.doors)} doors (0-{len(plan.doors) - 1})")
+    rest = [d for d in range(len(plan.doors)) if d not in named]
+    count = int(round(fraction * len(rest)))
+    picked = sorted(named + [int(d) for d in np.random.default_rng(seed + 60013).permutation(rest)[:count]])
+    if picked:
+        # a little wider than the opening: the wall closes flush on both sides
+        plan.walls = unary_union([plan.walls, *[plan.doors[d].buffer(0.01, join_style="mitre") for d in picked]])
+        plan.doors = [door for d, door in enumerate(plan.doors) if d not in picked]
+    return picked
 
 
 def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, room_max: float = 4.5,

@@ -19,6 +19,7 @@ import numpy as np
 import shapely
 from scipy import interpolate, ndimage, sparse
 from scipy.sparse import csgraph
+from shapely.ops import unary_union
 
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
 
@@ -164,10 +165,13 @@ def coverage_targets(planner: GridPlanner, spacing: float, limit: int = 400) -> 
     return targets
 
 
-def room_targets(plan: FloorPlan, planner: GridPlanner, coverage_spacing: float = 2.5) -> list[int]:
+def room_targets(plan: FloorPlan, planner: GridPlanner, coverage_spacing: float = 2.5,
+                 rooms: list[int] | None = None) -> list[int]:
     """One reachable cell per room: the clearest one; rooms without a reachable cell are left out.
-    A plan without room outlines (a raster plan, whose one "room" is the whole image) gets
-    :func:`coverage_targets` instead, so that its robots drive through all of its free space."""
+    With ``rooms`` (numbers in ``plan.rooms``) only those; robots then drive in the connected
+    region that holds most of them (closed doors can cut a plan in parts), so the others stay
+    unseen. A plan without room outlines (a raster plan, whose one "room" is the whole image)
+    gets :func:`coverage_targets` instead, so that its robots drive through all of its free space."""
     if plan.raster is not None and len(plan.rooms) <= 1:
         targets = coverage_targets(planner, coverage_spacing)
         if len(targets) < 2:
@@ -176,9 +180,20 @@ def room_targets(plan: FloorPlan, planner: GridPlanner, coverage_spacing: float 
                                          "walls); check the map's scale and thresholds")
         return targets
     pts, shape = planner.grid.centres()
-    reachable = reachable_cells(planner)
+    chosen = list(range(len(plan.rooms))) if not rooms else sorted(set(rooms))
+    bad = [r for r in chosen if not 0 <= r < len(plan.rooms)]
+    if bad:
+        raise PlanError(plan.source, f"room(s) {bad} do not exist: the plan has {len(plan.rooms)} rooms (0-{len(plan.rooms) - 1})")
+    if rooms:  # the region (of cells a robot fits in) that holds most of the chosen rooms
+        inside_any = shapely.contains_xy(unary_union([plan.rooms[r] for r in chosen]), pts[:, 0], pts[:, 1]).reshape(shape)
+        labels = planner.labels[planner.ok & inside_any]
+        if len(labels) == 0:
+            raise PlanError(plan.source, f"rooms {chosen} have no space a robot fits in")
+        reachable = planner.ok & (planner.labels == np.bincount(labels).argmax())
+    else:
+        reachable = reachable_cells(planner)
     targets = []
-    for room in plan.rooms:
+    for room in (plan.rooms[r] for r in chosen):
         inside = shapely.contains_xy(room, pts[:, 0], pts[:, 1]).reshape(shape) & reachable
         if inside.any():
             flat = np.where(inside.ravel(), planner.clear.ravel(), -1.0)
@@ -189,12 +204,12 @@ def room_targets(plan: FloorPlan, planner: GridPlanner, coverage_spacing: float 
 
 
 def plan_paths(plan: FloorPlan, grid: OccupancyGrid, robots: int, seed: int, rooms_per_robot: int = 0,
-               clearance: float = 0.2, coverage_spacing: float = 2.5) -> list[np.ndarray]:
+               clearance: float = 0.2, coverage_spacing: float = 2.5, rooms: list[int] | None = None) -> list[np.ndarray]:
     """One waypoint path (K, 2) in metres per robot; together they visit every reachable room
     (or, on a plan without room outlines, come within ``coverage_spacing`` of every reachable
     cell)."""
     planner = GridPlanner(grid, clearance)
-    targets = room_targets(plan, planner, coverage_spacing)
+    targets = room_targets(plan, planner, coverage_spacing, rooms)
     n = len(targets)
     dist, pred = csgraph.dijkstra(planner.graph, directed=False, indices=targets, return_predecessors=True)
     d = dist[:, targets]

@@ -27,7 +27,7 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from swarmmap.shared.config import WorldSettings
-from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError, procedural
+from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, procedural
 from swarmmap.shared.paths import check_paths, interpolate_dinno
 
 MAX_IMAGE_PIXELS = 50_000_000
@@ -63,6 +63,8 @@ def load_floorplan(spec: str, settings: WorldSettings, seed: int) -> FloorPlan:
         else:
             raise PlanError(spec, f"unknown floor-plan kind {suffix or '(no suffix)'!r}: use procedural, a .svg, a .png "
                                   "or a ROS map_server .yaml")
+    if settings.closed_doors or settings.closed_door_fraction > 0:
+        plan.closed = close_doors(plan, settings.closed_door_fraction, settings.closed_doors, seed)
     if settings.waypoints:
         plan.paths = load_waypoints(Path(settings.waypoints), plan)
     return plan
