@@ -246,6 +246,32 @@ def curves_figure(curves: dict[str, list[dict[int, list[tuple[int, float]]]]], p
     plt.close(fig)
 
 
+def reliability_figure(diagrams: list[tuple[str, dict[str, list]]], path: Path) -> None:
+    """Reliability diagrams (predicted occupancy against true frequency, one line per map) over
+    the diagonal of perfect calibration, with the cells per bin below."""
+    plt = _plt()
+    fig, (ax, bars) = plt.subplots(2, 1, figsize=(5.2, 6.2), height_ratios=[3, 1], sharex=True, constrained_layout=True)
+    ax.plot([0, 1], [0, 1], color="gray", lw=1, ls="--", label="calibrated")
+    width = 1.0 / max(len(diagrams[0][1]["cells"]), 1) if diagrams else 0.1
+    for k, (label, rel) in enumerate(diagrams):
+        pts = [(p, f) for p, f in zip(rel["predicted"], rel["frequency"]) if p is not None]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", ms=3, label=label)
+        centres = (np.arange(len(rel["cells"])) + 0.5) * width
+        bars.bar(centres + (k - len(diagrams) / 2) * width / max(len(diagrams), 1), rel["cells"],
+                 width=width / max(len(diagrams), 1), label=label)
+    ax.set_ylabel("true frequency of occupied cells")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    bars.set_yscale("log")
+    bars.set_xlabel("predicted occupancy (mean map)")
+    bars.set_ylabel("cells")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def stack_curves(runs: list[dict[int, list[tuple[int, float]]]]) -> tuple[np.ndarray, np.ndarray]:
     """Rounds common to every agent of every run, and the (agents x runs, rounds) losses."""
     series = [dict(rows) for run in runs for rows in run.values()]
@@ -253,6 +279,15 @@ def stack_curves(runs: list[dict[int, list[tuple[int, float]]]]) -> tuple[np.nda
         return np.zeros(0), np.zeros((0, 0))
     rounds = sorted(set.intersection(*(set(s) for s in series)))
     return np.array(rounds), np.array([[s[k] for k in rounds] for s in series])
+
+
+def json_ready(x):
+    """``x`` with every NaN float as None (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {k: json_ready(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_ready(v) for v in x]
+    return None if isinstance(x, float) and x != x else x
 
 
 def write_csv(path: Path, header: list[str], rows: list[list]) -> None:
@@ -311,6 +346,7 @@ def kl_sweep(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     maps_figure(columns, out / "kl_sweep_maps.png", base.observer.std_max)
+    reliability_figure([(label, sc["reliability"]) for label, sc in scored], out / "reliability.png")
     write_csv(out / "kl_sweep.csv", ["kl_weight", "final_val_bce", *SCORE_KEYS], rows)
     lines = [f"# KL-weight sweep (the paper's Figure 6): preset {base.preset}", "",
              f"One isolated agent (no communication) whose path visits {args.rooms} room(s), so part of the plan "
@@ -320,6 +356,7 @@ def kl_sweep(args: argparse.Namespace) -> int:
              "| kl_weight | final val_bce |", "| --- | --- |"]
     lines += [f"| {r[0]:g} | {fmt(r[1])} |" for r in rows]
     lines += ["", "Uncertainty scores (observed = within 0.1 m of a training point):", ""] + scores_table(scored)
+    lines += ["", "![reliability diagrams of the mean maps](reliability.png)"]
     lines += ["", f"Command: `{' '.join(sys.argv)}`", ""]
     (out / "report.md").write_text("\n".join(lines))
     print("\n".join(lines))
@@ -394,12 +431,27 @@ def regularization(args: argparse.Namespace) -> int:
 
 
 def score(args: argparse.Namespace) -> int:
+    """Print the scores of a finished run's maps and write them, with reliability diagrams, to
+    ``--out`` (default RUN_DIR/scores; an earlier scores folder is moved aside, not overwritten)."""
     per_robot = score_run(args.run_dir, args.radius)
     if not per_robot:
         print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn run saves std maps)", file=sys.stderr)
         return 2
     vals = final_val_bce(args.run_dir)
     print("\n".join(scores_table([(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()])))
+    out = args.out or args.run_dir / "scores"
+    if out.exists() and any(out.iterdir()):
+        aside = out.with_name(f"{out.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
+        out.rename(aside)
+        print(f"{out} held earlier scores; moved them to {aside}", file=sys.stderr)
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(out / "scores.csv", ["robot", "final_val_bce", *SCORE_KEYS],
+              [[r, vals.get(r), *(s[k] for k in SCORE_KEYS)] for r, s in per_robot.items()])
+    doc = {"run_dir": str(args.run_dir), "radius_m": args.radius, "mean": mean_scores(per_robot),
+           "robots": {str(r): {"final_val_bce": vals.get(r), **s} for r, s in per_robot.items()}}
+    (out / "scores.json").write_text(json.dumps(json_ready(doc), indent=1))
+    reliability_figure([(f"robot {r}", s["reliability"]) for r, s in per_robot.items()], out / "reliability.png")
+    print(f"wrote {out / 'scores.csv'}, {out / 'scores.json'} and {out / 'reliability.png'}")
     return 0
 
 
@@ -430,6 +482,8 @@ def add_parser(sub) -> None:
                        description="Uncertainty scores of a finished bnn run's maps.")
     s.add_argument("run_dir", type=Path, help="the run directory")
     s.add_argument("--radius", type=float, default=0.1, help="cells within this distance (m) of a training point are observed")
+    s.add_argument("--out", type=Path, default=None, help="folder for scores.csv, scores.json, reliability.png "
+                                                          "(default RUN_DIR/scores)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -6,7 +6,8 @@ user asks of an uncertainty map:
 - ``nll``: the negative log-likelihood (binary cross-entropy) of the true occupancy under the
   mean map, per cell. Lower is better.
 - ``ece``: expected calibration error of the mean map (10 equal-width bins of the predicted
-  occupancy; the cell-weighted gap between the bin's mean prediction and its true frequency).
+  occupancy; the cell-weighted gap between the bin's mean prediction and its true frequency);
+  ``reliability`` holds those bins, for a reliability diagram.
 - ``auroc_error``: how well the std ranks the cells where the map is wrong (mean on the wrong
   side of 0.5) above the cells where it is right: 1 is perfect, 0.5 is no better than chance.
 - ``auroc_unobserved``: how well the std ranks the cells no robot saw above the cells they saw:
@@ -49,20 +50,33 @@ def auroc(scores: np.ndarray, positives: np.ndarray) -> float:
     return float((ranks[positives].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
 
 
-def calibration_error(mean: np.ndarray, truth: np.ndarray, bins: int = 10) -> float:
-    """Expected calibration error of predicted occupancies ``mean`` against 0/1 ``truth``."""
+def reliability(mean: np.ndarray, truth: np.ndarray, bins: int = 10) -> dict[str, list]:
+    """The reliability diagram of predicted occupancies ``mean`` against 0/1 ``truth``: per
+    equal-width bin of the prediction, the mean prediction, the true frequency of occupied
+    cells and the number of cells (None for an empty bin: JSON-ready)."""
     mean, truth = np.asarray(mean, np.float64).ravel(), np.asarray(truth, np.float64).ravel()
     which = np.clip((mean * bins).astype(int), 0, bins - 1)
-    total = 0.0
+    out: dict[str, list] = {"predicted": [], "frequency": [], "cells": []}
     for b in range(bins):
         sel = which == b
-        if sel.any():
-            total += sel.sum() * abs(mean[sel].mean() - truth[sel].mean())
-    return float(total / max(len(mean), 1))
+        n = int(sel.sum())
+        out["predicted"].append(float(mean[sel].mean()) if n else None)
+        out["frequency"].append(float(truth[sel].mean()) if n else None)
+        out["cells"].append(n)
+    return out
 
 
-def score_map(mean: np.ndarray, std: np.ndarray, truth: np.ndarray, observed: np.ndarray) -> dict[str, float]:
-    """Every score of the module docstring for one map; arrays share a shape, ``truth`` 0/1."""
+def calibration_error(mean: np.ndarray, truth: np.ndarray, bins: int = 10) -> float:
+    """Expected calibration error of predicted occupancies ``mean`` against 0/1 ``truth``: the
+    cell-weighted gap between prediction and frequency over :func:`reliability`'s bins."""
+    rel = reliability(mean, truth, bins)
+    total = sum(n * abs(p - f) for p, f, n in zip(rel["predicted"], rel["frequency"], rel["cells"]) if n)
+    return float(total / max(sum(rel["cells"]), 1))
+
+
+def score_map(mean: np.ndarray, std: np.ndarray, truth: np.ndarray, observed: np.ndarray) -> dict:
+    """Every score of the module docstring for one map (floats), and its ``reliability``
+    diagram; arrays share a shape, ``truth`` 0/1."""
     mean = np.clip(np.asarray(mean, np.float64), 1e-6, 1 - 1e-6)
     truth = np.asarray(truth, bool)
     observed = np.asarray(observed, bool)
@@ -73,4 +87,5 @@ def score_map(mean: np.ndarray, std: np.ndarray, truth: np.ndarray, observed: np
     return {"nll": float(nll.mean()), "ece": calibration_error(mean, truth), "accuracy": float(1 - wrong.mean()),
             "auroc_error": auroc(std, wrong), "auroc_unobserved": auroc(std, ~observed),
             "std_observed": s_obs, "std_unobserved": s_un,
-            "std_ratio": s_un / s_obs if s_obs > 0 else float("nan"), "observed_fraction": float(observed.mean())}
+            "std_ratio": s_un / s_obs if s_obs > 0 else float("nan"), "observed_fraction": float(observed.mean()),
+            "reliability": reliability(mean, truth)}

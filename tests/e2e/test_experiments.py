@@ -4,6 +4,7 @@ the CSV behind them and a report with the uncertainty scores."""
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 
 import pytest
@@ -39,6 +40,19 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
     assert float(rows[1]["std_observed"]) > float(rows[0]["std_observed"])
     report = (out / "report.md").read_text()
     assert "kl_sweep_maps.png" in report and "auroc_error" in report and "std_unobserved" in report
+    assert "auroc_unobserved" in report and "reliability.png" in report
+    assert_png(out / "reliability.png")
+    for r in rows:
+        assert 0 <= float(r["auroc_unobserved"]) <= 1
+    # scoring a finished run writes its scores and reliability diagram, and keeps earlier ones
+    first = run("score", str(out / "runs" / "kl-0.0001"))
+    assert "auroc_unobserved" in first.stdout
+    folder = out / "runs" / "kl-0.0001" / "scores"
+    doc = json.loads((folder / "scores.json").read_text())
+    assert set(doc["robots"]) == {"0"} and len(doc["robots"]["0"]["reliability"]["cells"]) == 10
+    assert_png(folder / "reliability.png")
+    run("score", str(out / "runs" / "kl-0.0001"))
+    assert list(folder.parent.glob("scores.replaced-*")), "earlier scores were not kept"
     # Run again: the finished runs are reused; with other settings they are not.
     again = run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "1e-4", "--rooms", "1", "--out", str(out))
     assert "reusing it" in again.stderr
