@@ -150,7 +150,8 @@ class RunTracker:
 
 def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
-    save_png(run_dir / "groundtruth.png", world.grid.numpy().astype(float))
+    grid = world.grid.numpy()
+    save_png(run_dir / "groundtruth.png", np.where(grid == 2, 0.5, grid.astype(float)))  # unknown (ROS maps): grey
     buf = io.BytesIO()
     np.savez_compressed(buf, grid=world.grid.numpy(), resolution=world.resolution, origin=np.asarray(world.origin),
                         val_points=world.val_points.numpy(), val_labels=world.val_labels.numpy())
