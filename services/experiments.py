@@ -314,6 +314,15 @@ def mean_scores(per_robot: dict[int, dict[str, float]]) -> dict[str, float]:
 # ----------------------------------------------------------------------------- experiments
 
 
+def unseen_text(cfg: RunConfig) -> str:
+    """How the run keeps rooms unseen beyond the path, for a report ("" when it does not)."""
+    w = cfg.world
+    parts = ([f"doors {w.closed_doors} closed"] if w.closed_doors else []) + (
+        [f"{w.closed_door_fraction:.0%} of the doors closed"] if w.closed_door_fraction else []) + (
+        [f"paths confined to rooms {w.rooms}"] if w.rooms else [])
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def base_config(args: argparse.Namespace) -> RunConfig:
     overrides: dict = {"learner": {"model": "bnn", "transport": args.transport}, "up": {"observer": args.observer},
                        "log_level": "warning"}
@@ -350,7 +359,7 @@ def kl_sweep(args: argparse.Namespace) -> int:
     write_csv(out / "kl_sweep.csv", ["kl_weight", "final_val_bce", *SCORE_KEYS], rows)
     lines = [f"# KL-weight sweep (the paper's Figure 6): preset {base.preset}", "",
              f"One isolated agent (no communication) whose path visits {args.rooms} room(s), so part of the plan "
-             f"stays unseen; {base.learner.rounds} rounds of {base.learner.primal_iterations} steps, "
+             f"stays unseen{unseen_text(base)}; {base.learner.rounds} rounds of {base.learner.primal_iterations} steps, "
              f"model {base.learner.model_shape}, prior sigma {base.learner.prior_sigma}, rho init {base.learner.bnn_rho_init}.",
              "", "![mean and std maps](kl_sweep_maps.png)", "",
              "| kl_weight | final val_bce |", "| --- | --- |"]
