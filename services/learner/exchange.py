@@ -137,11 +137,10 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     a later one. Silence is counted while the node waits, not while it computes: a long update
     or evaluation (a big model, a starved CPU) does not make its neighbours look gone, whose
     States meanwhile wait in its inbox. A node ``resumed`` from a checkpoint may be behind its
-    team. Each node keeps the
-    States it sent in its last ``keep_rounds`` rounds and, when a neighbour sends a State of an
-    older round, sends them again: the resumed node replays the rounds it lost with exactly the
-    States its neighbours had (and comes back where it would have been). Further behind than
-    that, it jumps: before it has finished a round with a neighbour, a plausible State more than
+    team. Each node keeps the States it sent in its last ``keep_rounds`` rounds and, when a
+    neighbour sends a State of an older round, sends them again: the resumed node replays the
+    rounds it lost with exactly the States its neighbours had (and comes back where it would have
+    been). Further behind than that, it jumps: before it has finished a round with a neighbour, a plausible State more than
     ``keep_rounds`` rounds ahead makes it jump to that round, starting from
     ``rejoin(own_state, {peer: state})`` (default: its own state). So does a node left behind:
     one stuck in a round for longer than ``silent_after`` (its neighbours have left it out by
