@@ -12,8 +12,8 @@ round rounds/3 to the last: the learners start Algorithm 1 up to seconds apart a
 processes come up, and the first rounds wait for the last to start; the figure from round 0 is
 printed too), seconds a round per learner (on a fixed number of cores the team's round
 time should grow linearly with N: this is its ratio to the 2-learner team's), peak resident
-memory of a learner, and of the whole run (every service). ``--robots-per-room`` is not needed: the smoke plan's paths are shared out however
-many robots there are.
+memory of a learner, and of the whole run (every service). ``--robots-per-room`` is not
+needed: the smoke plan's paths are shared out however many robots there are.
 """
 
 from __future__ import annotations
