@@ -4,10 +4,9 @@
 no room outlines, such as an occupancy image or a ROS map, targets that cover its free space:
 :func:`coverage_targets`), spreads the robots' start rooms over the plan, and lets each robot
 visit the nearest rooms that no teammate has visited yet (about twice its share, so tours
-overlap); a room nobody reached is
-added to the tour that ends closest to it. Legs between targets are shortest paths on the
-grid (8-connected, cells at least ``clearance`` from walls, costs that keep robots away from
-walls), shortened where a straight line stays clear. :func:`interpolate_dinno` smooths waypoint
+overlap); a room nobody reached is added to the tour that ends closest to it. Legs between
+targets are shortest paths on the grid (8-connected, cells at least ``clearance`` from walls,
+costs that keep robots away from walls), shortened where a straight line stays clear. :func:`interpolate_dinno` smooths waypoint
 loops as DiNNO does; :func:`check_paths` refuses a waypoint outside the map or inside a wall.
 """
 
@@ -131,9 +130,8 @@ def coverage_targets(planner: GridPlanner, spacing: float, limit: int = 400) -> 
     image, a ROS map): farthest-point sampling in path distance (metres along the grid), so that
     every reachable cell lies within ``spacing`` metres of path from a target (the searches stop
     at twice that: a cell no target reaches within it counts as infinitely far, the first to be
-    covered); each new target is moved to the
-    clearest reachable cell near the farthest point (the middle of its room or corridor, not
-    the wall it is near)."""
+    covered); each new target is moved to the clearest reachable cell near the farthest point
+    (the middle of its room or corridor, not the wall it is near)."""
     reachable = reachable_cells(planner)
     if not reachable.any():
         return []
