@@ -6,8 +6,9 @@ no room outlines, such as an occupancy image or a ROS map, targets that cover it
 visit the nearest rooms that no teammate has visited yet (about twice its share, so tours
 overlap); a room nobody reached is added to the tour that ends closest to it. Legs between
 targets are shortest paths on the grid (8-connected, cells at least ``clearance`` from walls,
-costs that keep robots away from walls), shortened where a straight line stays clear. :func:`interpolate_dinno` smooths waypoint
-loops as DiNNO does; :func:`check_paths` refuses a waypoint outside the map or inside a wall.
+costs that keep robots away from walls), shortened where a straight line stays clear.
+:func:`interpolate_dinno` smooths waypoint loops as DiNNO does; :func:`check_paths` refuses a
+waypoint outside the map or inside a wall.
 """
 
 from __future__ import annotations
