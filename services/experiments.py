@@ -166,6 +166,13 @@ def finished(run_dir: Path) -> bool:
         return False
 
 
+def move_aside(path: Path) -> Path:
+    """Rename ``path`` to ``<name>.replaced-<time>`` (kept, out of the way); returns the new path."""
+    aside = path.with_name(f"{path.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
+    path.rename(aside)
+    return aside
+
+
 def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Path:
     """One ``swarmmap up`` of ``cfg`` into ``run_dir``: reused when it finished with the same
     settings, resumed (from the learners' checkpoints) when it stopped part-way, moved aside
@@ -177,8 +184,7 @@ def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Pat
         progress.finished()
         return run_dir
     if run_dir.exists() and not same_settings(run_dir, cfg):  # keep it, but out of this run's way
-        aside = run_dir.with_name(f"{run_dir.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
-        run_dir.rename(aside)
+        aside = move_aside(run_dir)
         log.warning("%s: %s holds a run with other settings; moved it to %s", label, run_dir, aside)
     progress.start(label, run_dir)
     stop = threading.Event()
@@ -450,8 +456,7 @@ def score(args: argparse.Namespace) -> int:
     print("\n".join(scores_table([(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()])))
     out = args.out or args.run_dir / "scores"
     if out.exists() and any(out.iterdir()):
-        aside = out.with_name(f"{out.name}.replaced-{time.strftime('%Y%m%d-%H%M%S')}")
-        out.rename(aside)
+        aside = move_aside(out)
         print(f"{out} held earlier scores; moved them to {aside}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "scores.csv", ["robot", "final_val_bce", *SCORE_KEYS],

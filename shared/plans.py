@@ -150,8 +150,6 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
         return float(value)
 
     res = number("resolution", lo=1e-4, hi=100.0)
-    if res <= 0:
-        raise PlanError(path, "resolution must be positive")
     occ_t, free_t = number("occupied_thresh", 0.65, 0.0, 1.0), number("free_thresh", 0.196, 0.0, 1.0)
     if free_t >= occ_t:
         raise PlanError(path, f"free_thresh {free_t} must be below occupied_thresh {occ_t}")
