@@ -88,11 +88,6 @@ def model_from_settings(settings, bounds: tuple[float, float, float, float], see
                        settings.prior_sigma, settings.bnn_rho_init)
 
 
-def get_flat(model: nn.Module) -> torch.Tensor:
-    """The model's parameters as one detached flat vector."""
-    return nn.utils.parameters_to_vector(model.parameters()).detach().clone()
-
-
 @torch.no_grad()
 def flatten_into(tensors: list[torch.Tensor], out: np.ndarray) -> np.ndarray:
     """Write ``tensors`` (any device) one after another into the float32 vector ``out``, in one
