@@ -21,14 +21,18 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# Versions read per message kind: a State changed in version 2 (compressed encodings), the other
+# messages did not, so that those of version 1 (a recording made by an older build) are still read.
+READ_VERSIONS = {"State": (2,)}
+OLDEST_VERSION = 1
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 
 NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _NAME_RE = re.compile(NAME_PATTERN)
 
 # Little-endian dtype strings a tensor may carry ("|u1" has no byte order).
-TENSOR_DTYPES = ("<f4", "<f8", "<i4", "<i8", "|u1")
+TENSOR_DTYPES = ("<f4", "<f8", "<f2", "<i4", "<i8", "<u2", "<u4", "|u1")
 MAX_TENSOR_DIMS = 4
 
 
@@ -169,7 +173,7 @@ class Message(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     KIND: ClassVar[str] = ""
 
-    v: Literal[1] = SCHEMA_VERSION
+    v: Literal[1, 2] = SCHEMA_VERSION
     kind: str
     run: Annotated[str, Field(pattern=NAME_PATTERN)]
     sender: RobotId
@@ -233,17 +237,61 @@ class Samples(Message):
         return self
 
 
+STATE_ENCODINGS = ("f32", "f16", "bf16", "topk")
+
+
 class State(Message):
-    """Algorithm 1's State message: a learner's flattened parameters at the start of ``round``."""
+    """Algorithm 1's State message: a learner's flattened parameters at the start of ``round``.
+
+    ``encoding`` says how ``params`` holds the vector (``learner.compression``):
+
+    - ``f32`` (default): the vector, float32 (``<f4``).
+    - ``f16``: the vector rounded to IEEE half precision (``<f2``).
+    - ``bf16``: the vector rounded to bfloat16, as the top 16 bits of each float32 (``<u2``).
+    - ``topk``: a sparse update of the sender's vector as its receivers hold it: ``params`` the
+      values (``<f4``) to add at ``indices`` (``<u4``, strictly increasing, below ``size``) to
+      the vector of the sender's State numbered ``base``; this State is numbered ``seq``. An
+      ``f32`` State with a ``seq`` starts such a chain again (a key frame)."""
 
     KIND: ClassVar[str] = "State"
+    v: Literal[2] = SCHEMA_VERSION
     round: Round
     params: Tensor
+    encoding: Literal[STATE_ENCODINGS] = "f32"  # type: ignore[valid-type]
+    size: Annotated[int, Field(ge=0, lt=1 << 30)] | None = None
+    indices: Tensor | None = None
+    seq: Annotated[int, Field(ge=0)] | None = None
+    base: Annotated[int, Field(ge=0)] | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
-        _require(self.params, "params", "<f4", 1)
+        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4"}[self.encoding]
+        _require(self.params, "params", dtype, 1)
+        if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
+            raise ValueError("params: non-finite values")
+        if self.encoding != "topk":
+            if self.indices is not None or self.size is not None or self.base is not None:
+                raise ValueError(f"indices, size and base belong to topk States, not {self.encoding}")
+            return self
+        if self.indices is None or self.size is None or self.seq is None or self.base is None:
+            raise ValueError("a topk State needs indices, size, seq and base")
+        _require(self.indices, "indices", "<u4", 1)
+        idx = self.indices.numpy()
+        if idx.shape != tuple(self.params.shape):
+            raise ValueError("indices and params must have the same length")
+        if len(idx) and (int(idx[-1]) >= self.size or (np.diff(idx.astype(np.int64)) <= 0).any()):
+            raise ValueError(f"indices must increase strictly and stay below size {self.size}")
         return self
+
+    @property
+    def vector_size(self) -> int:
+        """How many values the vector this State stands for has."""
+        return self.size if self.size is not None else self.params.shape[0]
+
+    @property
+    def plain(self) -> bool:
+        """Whether ``params`` is the whole vector as float32 and nothing else is needed to read it."""
+        return self.encoding == "f32" and self.seq is None
 
 
 class RoundComplete(Message):
@@ -334,9 +382,19 @@ M = TypeVar("M", bound=Message)
 def encode(message: Message) -> bytes:
     """Serialise a message to its msgpack bytes (a State's float32 vector in the layout of
     :func:`encode_state`)."""
-    if isinstance(message, State) and message.params.dtype == "<f4" and len(message.params.shape) == 1:
-        return encode_state(message.run, message.sender, message.round, message.params.numpy())
-    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    if isinstance(message, State):
+        if message.plain and message.params.dtype == "<f4" and len(message.params.shape) == 1:
+            return encode_state(message.run, message.sender, message.round, message.params.numpy())
+    return msgpack.packb(wire_dict(message), use_bin_type=True)
+
+
+def wire_dict(message: Message) -> dict:
+    """The map a message is on the wire: its fields, less a State's unset optional ones (a
+    float32 State carries neither ``encoding`` nor the fields of the other encodings)."""
+    doc = message.model_dump(mode="python")
+    if isinstance(message, State):
+        doc = {k: v for k, v in doc.items() if v is not None and not (k == "encoding" and v == "f32")}
+    return doc
 
 
 STATE_ALIGN = 16  # a State's vector starts at a multiple of this many bytes into its payload
@@ -544,10 +602,14 @@ def decode(
         raise ProtocolError("malformed", f"not msgpack: {exc}") from None
     if not isinstance(doc, dict):
         raise ProtocolError("malformed", f"top level must be a map, got {type(doc).__name__}")
-    if doc.get("v") != SCHEMA_VERSION:
-        raise ProtocolError("version", f"schema version {doc.get('v')!r}, this build speaks {SCHEMA_VERSION}")
     if doc.get("kind") != expected.KIND:
         raise ProtocolError("kind", f"expected {expected.KIND}, got {doc.get('kind')!r}")
+    readable = READ_VERSIONS.get(expected.KIND, range(OLDEST_VERSION, SCHEMA_VERSION + 1))
+    if doc.get("v") not in readable:
+        older = isinstance(doc.get("v"), int) and doc["v"] < min(readable)
+        raise ProtocolError("version", f"{expected.KIND} of schema version {doc.get('v')!r}, this build reads "
+                                       f"{', '.join(map(str, readable))}"
+                            + (" (the sender runs an older swarmmap: run one version across the team)" if older else ""))
     if doc.get("run") != run:
         raise ProtocolError("wrong-run", f"run {doc.get('run')!r}, expected {run!r}")
     if sender is not None and doc.get("sender") != sender:

@@ -28,6 +28,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, decode, encode, encode_state
+
 log = logging.getLogger("learner")
 
 
@@ -38,7 +40,7 @@ class Envelope:
     kind: Literal["state", "complete"]
     sender: int
     round: int
-    params: np.ndarray | None = None
+    params: np.ndarray | State | None = None  # a State of another encoding until a StateCodec rebuilds its vector
 
 
 class Transport(Protocol):
@@ -72,6 +74,7 @@ class ExchangeStats:
     rejoined: int = 0  # times one came back
     caught_up: int = 0  # times this node jumped ahead to its team's round
     replayed: int = 0  # States sent again to neighbours that were behind
+    missed: int = 0  # neighbours' States a round went on without (round_wait: poor links)
 
 
 # A State of a round further ahead than this cannot be needed yet (a neighbour is at most one
@@ -119,7 +122,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                    peer_timeout: float = 120.0, resend_after: float = 2.0, linger: float = 5.0,
                    check_state: StateCheck | None = None, silent_after: float = 30.0,
                    rejoin: Rejoin | None = None, resumed: bool = False, rejoin_wait: float = 0.0,
-                   keep_rounds: int = 0) -> np.ndarray:
+                   keep_rounds: int = 0, round_wait: float = 0.0) -> np.ndarray:
     """Run rounds ``start_round .. max_rounds - 1``; return the final state.
 
     ``node_update(round, state, {peer: peer_state})`` is the algorithm (DiNNO's, here); it sees
@@ -147,6 +150,13 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     then) that receives a State further ahead than they can replay. A node whose neighbours are
     all left out waits for one to come back, and fails (PeerFailure) when it has had none for
     ``peer_timeout`` seconds.
+
+    Poor links (``round_wait`` > 0): a node that has been ``round_wait`` seconds in a round runs
+    its update with the neighbours' States that have arrived (none, if none has) and finishes the
+    round without waiting for the RoundCompletes still missing: a round waits at most
+    ``round_wait`` seconds for messages. The neighbours it went on without are missing from that
+    round only (``stats.missed``); nobody is left out for it. Where every message arrives in
+    time, the rounds are Algorithm 1's.
     """
     stats = stats if stats is not None else ExchangeStats()
     buf = _Rounds()
@@ -189,7 +199,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         round and send its State. Returns whether it did."""
         nonlocal rnd, updated, joining, round_state, round_started
         moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
-        if not (updated and (active <= buf.complete[rnd] or moved_on)):
+        waited = round_wait > 0 and time.monotonic() - round_started >= round_wait
+        if not (updated and (active <= buf.complete[rnd] or moved_on or waited)):
             return False
         joining = joining and not active
         buf.states.pop(rnd, None)
@@ -217,9 +228,12 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         while progressed and rnd < max_rounds:
             progressed = False
             peers = buf.states[rnd]
-            if not updated and (active or not neighbours) and active <= peers.keys():
+            timed_out = round_wait > 0 and time.monotonic() - round_started >= round_wait
+            if not updated and (((active or not neighbours) and active <= peers.keys()) or timed_out):
                 busy_since = time.monotonic()
-                state = node_update(rnd, state, {j: peers[j] for j in sorted(active)})
+                here = sorted(active & peers.keys())
+                stats.missed += len(active) - len(here)
+                state = node_update(rnd, state, {j: peers[j] for j in here})
                 busy = time.monotonic() - busy_since
                 for j in heard:  # silence counts while this node listens, not while it computes
                     heard[j] += busy  # (what the neighbours sent meanwhile waits in its inbox)
@@ -261,7 +275,11 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 last_resend = now
             continue  # the neighbours left out may let the round advance
         t0 = time.perf_counter()
-        msg = transport.receive(timeout=CHECK_EVERY_S)
+        timeout = CHECK_EVERY_S
+        if round_wait > 0:  # wake when this round's wait for States or RoundCompletes is over
+            due = round_started + round_wait
+            timeout = min(timeout, max(0.005, due - time.monotonic()))
+        msg = transport.receive(timeout=timeout)
         stats.wait_s += time.perf_counter() - t0
         now = time.monotonic()
         if msg is not None:
@@ -272,7 +290,10 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             if msg.kind == "state":
                 newest[j] = max(newest.get(j, -1), msg.round)
             if msg.round < rnd:  # a neighbour behind (restarted): send it the States it needs again
-                if behind and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
+                # (On poor links, a neighbour a round or two behind is one still waiting out its round, not one
+                # that restarted: it catches up by itself.)
+                lagging = round_wait > 0 and rnd - msg.round <= ROUNDS_AHEAD
+                if behind and not lagging and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
                     replayed[(j, msg.round)] = now
                     log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", node_id, j,
                              msg.round, msg.round, rnd)
@@ -354,33 +375,45 @@ def _still_needed(neighbours: set[int], buf: _Rounds, rnd: int, updated: bool) -
 class MemoryHub:
     """In-process transport for the reference run and tests: one queue per node.
 
+    With ``run`` (a run id), every message goes through the wire codec, as over Zenoh: encoded
+    to its bytes, decoded and validated by each receiver, and its bytes counted
+    (``bytes_sent`` per sender, ``bytes_received`` per receiver). Without it, messages pass as
+    objects (Algorithm 1's tests, with vectors of any dtype).
+
     ``delay(sender, receiver, envelope) -> seconds`` may hold a message back, which reorders
     deliveries the way a network can.
     """
 
     def __init__(self, graph: dict[int, set[int]],
-                 delay: Callable[[int, int, Envelope], float] | None = None):
+                 delay: Callable[[int, int, Envelope], float] | None = None, run: str | None = None):
         import queue
 
         self.graph = graph
         self.delay = delay
+        self.run = run
         self.queues = {i: queue.Queue() for i in graph}
         self.timers: list[threading.Timer] = []
         self.lost: set[int] = set()  # nodes that have left (as their liveliness tokens would say)
+        self.bytes_sent: Counter[int] = Counter()
+        self.bytes_received: Counter[int] = Counter()
 
     def transport(self, node: int) -> MemoryTransport:
         return MemoryTransport(self, node)
 
-    def deliver(self, sender: int, env: Envelope) -> None:
+    def deliver(self, sender: int, env: Envelope, payload: bytes | None = None) -> None:
+        """Queue ``env`` (or its ``payload``, when the hub speaks the wire codec) for every neighbour."""
+        item = env if payload is None else (env.kind, payload)
+        if payload is not None:
+            self.bytes_sent[sender] += len(payload)
         for j in self.graph[sender]:
             wait = self.delay(sender, j, env) if self.delay else 0.0
             if wait > 0:
-                timer = threading.Timer(wait, self.queues[j].put, args=(env,))
+                timer = threading.Timer(wait, self.queues[j].put, args=(item,))
                 timer.daemon = True
                 self.timers.append(timer)
                 timer.start()
             else:
-                self.queues[j].put(env)
+                self.queues[j].put(item)
 
 
 class MemoryTransport:
@@ -389,20 +422,58 @@ class MemoryTransport:
     def __init__(self, hub: MemoryHub, node: int):
         self.hub = hub
         self.node = node
+        self.refused: Counter[str] = Counter()  # payloads the codec refused (wire mode)
 
     def send_state(self, round: int, params: np.ndarray) -> None:
-        self.hub.deliver(self.node, Envelope("state", self.node, round, np.array(params, copy=True)))
+        if self.hub.run is None:
+            self.hub.deliver(self.node, Envelope("state", self.node, round, np.array(params, copy=True)))
+        else:
+            self.hub.deliver(self.node, Envelope("state", self.node, round),
+                             encode_state(self.hub.run, self.node, round, params))
+
+    def send_fields(self, round: int, fields: dict) -> None:
+        """A State of another encoding (:mod:`~swarmmap.shared.compression`); needs the wire codec."""
+        if self.hub.run is None:
+            raise ValueError("compressed States need a MemoryHub that speaks the wire codec (run=...)")
+        msg = State(run=self.hub.run, sender=self.node, round=round, **fields)
+        self.hub.deliver(self.node, Envelope("state", self.node, round), encode(msg))
 
     def send_round_complete(self, round: int) -> None:
-        self.hub.deliver(self.node, Envelope("complete", self.node, round))
+        if self.hub.run is None:
+            self.hub.deliver(self.node, Envelope("complete", self.node, round))
+        else:
+            self.hub.deliver(self.node, Envelope("complete", self.node, round),
+                             encode(RoundComplete(run=self.hub.run, sender=self.node, round=round)))
 
     def receive(self, timeout: float) -> Envelope | None:
         import queue
 
         try:
-            return self.hub.queues[self.node].get(timeout=timeout)
+            item = self.hub.queues[self.node].get(timeout=timeout)
         except queue.Empty:
+            return None
+        if isinstance(item, Envelope):
+            return item
+        kind, payload = item
+        self.hub.bytes_received[self.node] += len(payload)
+        try:
+            if kind == "complete":
+                msg = decode(payload, RoundComplete, run=self.hub.run)
+                return Envelope("complete", msg.sender, msg.round)
+            return state_envelope(decode(payload, State, run=self.hub.run))
+        except ProtocolError as exc:
+            self.refused[exc.reason] += 1
             return None
 
     def lost_peers(self) -> set[int]:
         return self.hub.lost - {self.node}
+
+    def wire_bytes(self) -> tuple[int, int]:
+        """Bytes this node sent and received on Algorithm 1's links (wire mode)."""
+        return self.hub.bytes_sent[self.node], self.hub.bytes_received[self.node]
+
+
+def state_envelope(msg: State) -> Envelope:
+    """A received State as Algorithm 1 takes it: an uncompressed one's vector as a read-only view
+    of the payload; any other, the message itself (a :class:`StateCodec` rebuilds its vector)."""
+    return Envelope("state", msg.sender, msg.round, msg.params.numpy() if msg.plain else msg)

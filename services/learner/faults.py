@@ -37,6 +37,9 @@ class FaultyTransport:
     def send_state(self, round: int, params: np.ndarray) -> None:
         self.inner.send_state(round, params)
 
+    def send_fields(self, round: int, fields: dict) -> None:
+        self.inner.send_fields(round, fields)
+
     def send_round_complete(self, round: int) -> None:
         self.inner.send_round_complete(round)
 

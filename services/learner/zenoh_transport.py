@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from swarmmap.services.learner.exchange import Envelope
+from swarmmap.services.learner.exchange import Envelope, state_envelope
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateFrame, encode_state
 
@@ -38,8 +38,8 @@ class ZenohTransport:
         self.complete_pub = bus.publisher(bus.keys.round_complete(node))
 
         def check(msg: State) -> None:
-            if msg.params.shape != [param_count]:
-                raise ProtocolError("shape", f"State.params has shape {msg.params.shape}, this model has {param_count}")
+            if msg.vector_size != param_count:
+                raise ProtocolError("shape", f"a State of {msg.vector_size} values, this node's States have {param_count}")
 
         for j in sorted(neighbours):
             bus.subscribe(bus.keys.state(j), State, self._on_state, check=check)
@@ -53,7 +53,7 @@ class ZenohTransport:
         bus.watch_alive("exchange", on_alive)
 
     def _on_state(self, msg: State) -> None:
-        self.inbox.put(Envelope("state", msg.sender, msg.round, msg.params.numpy()))  # read-only, no copy
+        self.inbox.put(state_envelope(msg))  # an uncompressed vector: read-only, no copy
 
     def _on_complete(self, msg: RoundComplete) -> None:
         self.inbox.put(Envelope("complete", msg.sender, msg.round))
@@ -69,6 +69,10 @@ class ZenohTransport:
             return
         with self._send_lock:
             self.state_pub.put_bytes(frame.stamp(round))
+
+    def send_fields(self, round: int, fields: dict) -> None:
+        """A State of another encoding (:mod:`~swarmmap.shared.compression`)."""
+        self.state_pub.put(State(run=self.run, sender=self.node, round=round, **fields))
 
     def send_round_complete(self, round: int) -> None:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))

@@ -22,6 +22,7 @@ from swarmmap.shared.protocol import (
     decode,
     encode,
     encode_state,
+    wire_dict,
 )
 
 RUN = "run-1"
@@ -34,7 +35,7 @@ def state(**over) -> State:
 
 
 def raw(message) -> dict:
-    return message.model_dump(mode="python")
+    return wire_dict(message)
 
 
 def test_state_round_trip_preserves_params_bit_for_bit():
@@ -92,9 +93,26 @@ def test_refuses_sender_that_does_not_match_its_key():
 
 def test_refuses_other_schema_version_and_kind():
     doc = raw(state())
-    doc["v"] = 2
+    doc["v"] = 3
     assert refused(msgpack.packb(doc)) == "version"
     assert refused(encode(RoundComplete(run=RUN, sender=2, round=1))) == "kind"
+
+
+def test_a_state_from_an_older_swarmmap_is_refused_saying_so():
+    doc = raw(state())
+    doc["v"] = 1
+    with pytest.raises(ProtocolError, match="older swarmmap") as info:
+        decode(msgpack.packb(doc), State, run=RUN)
+    assert info.value.reason == "version"
+
+
+def test_messages_whose_layout_did_not_change_are_read_at_version_1():
+    """A recording made by the previous build holds Samples of schema version 1: still read."""
+    msg = Samples(run=RUN, sender=0, seq=1, t=0.5, position=[0.0, 0.0], points=Tensor.of(np.zeros((3, 2), np.float32)),
+                  labels=Tensor.of(np.array([0, 1, 0], np.float32)), last=True)
+    doc = raw(msg)
+    doc["v"] = 1
+    assert decode(msgpack.packb(doc), Samples, run=RUN).points == msg.points
 
 
 def test_refuses_wrong_dtype():
@@ -161,7 +179,7 @@ def test_state_fast_path_writes_and_reads_what_the_generic_codec_does(n):
     params = np.random.default_rng(n).standard_normal(n).astype(np.float32)
     payload = encode_state("run-1", 3, 17, params)
     state = State(run="run-1", sender=3, round=17, params=Tensor.of(params, "<f4"))
-    assert msgpack.unpackb(payload) == state.model_dump(mode="python")
+    assert msgpack.unpackb(payload) == wire_dict(state)
     assert payload == encode(state)
     assert (len(payload) - params.nbytes) % STATE_ALIGN == 0, "the vector must start aligned"
     msg = decode(payload, State, run="run-1", sender=3)

@@ -1,0 +1,78 @@
+"""What Algorithm 1's States look like on the wire: their rounds and their encoding.
+
+:class:`StateCodec` wraps any transport (Zenoh's, the in-memory one, a faulty one). It
+
+- numbers States by training round: with ``learner.exchange_every`` = E, Algorithm 1's round c
+  is training rounds cE .. cE + E - 1 and its State travels as round cE, so observers and logs
+  see training rounds whatever E is;
+- compresses States (``learner.compression``, :mod:`~swarmmap.shared.compression`) and rebuilds
+  the vectors of the States it receives, whatever encoding each sender chose. It sits outside
+  the fault layer, so a State the harness loses is lost to the rebuilding too.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from swarmmap.services.learner.exchange import Envelope, Transport
+from swarmmap.shared.compression import Compressor, Decompressor
+from swarmmap.shared.protocol import State
+
+log = logging.getLogger("learner")
+
+
+class StateCodec:
+    """One node's States, encoded and numbered for the wire, over ``inner``."""
+
+    def __init__(self, inner: Transport, node: int, compressor: Compressor | None = None, every: int = 1):
+        self.inner, self.node, self.every = inner, node, every
+        self.compressor = compressor if compressor is not None and compressor.mode != "none" else None
+        self.decompressor = Decompressor()
+        self.cached: tuple[int, int, dict] | None = None  # (round, compressor seq, fields) of the newest State sent
+        self.logged: set[tuple[str, int]] = set()
+        self.unusable = 0  # States received that could not be rebuilt or were off the exchange rounds
+
+    def send_state(self, round: int, params: np.ndarray) -> None:
+        wire = round * self.every
+        if self.compressor is None:
+            self.inner.send_state(wire, params)
+            return
+        c = self.compressor
+        if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
+            fields = self.cached[2]  # the same State again: the same bytes (receivers ignore duplicates)
+        else:
+            # A State of an older round (sent again to a neighbour that restarted) goes whole: it
+            # starts the replicas again for whoever missed what came before; the next ones add to it.
+            fields = c.fields(params, keyframe=self.cached is not None and round < self.cached[0])
+            self.cached = (round, c.seq, fields)
+        self.inner.send_fields(wire, fields)
+
+    def send_round_complete(self, round: int) -> None:
+        self.inner.send_round_complete(round * self.every)
+
+    def lost_peers(self) -> set[int]:
+        return self.inner.lost_peers()
+
+    def _once(self, key: tuple[str, int], text: str) -> None:
+        self.unusable += 1
+        if key not in self.logged:
+            self.logged.add(key)
+            log.warning("node %d: %s (further ones are only counted)", self.node, text)
+
+    def receive(self, timeout: float) -> Envelope | None:
+        env = self.inner.receive(timeout)
+        if env is None:
+            return None
+        if env.round % self.every:
+            self._once(("rounds", env.sender), f"node {env.sender} sent a {env.kind} for round {env.round}, not an exchange "
+                                                f"round (every {self.every}): does it run with another learner.exchange_every?")
+            return None
+        params = env.params
+        if isinstance(params, State):
+            params = self.decompressor.vector(params)
+            if params is None:
+                self._once(("chain", env.sender), self.decompressor.why)
+                return None
+        return Envelope(env.kind, env.sender, env.round // self.every, params)

@@ -1,0 +1,135 @@
+"""Compressed States (``learner.compression``): what a learner sends instead of its float32 vector.
+
+Modes:
+
+- ``none``: the float32 vector (4 bytes a value).
+- ``f16`` / ``bf16``: the vector rounded to half precision or bfloat16 (2 bytes a value). Each
+  State stands alone, so a lost one costs nothing later. A vector with values beyond half
+  precision's range goes as float32 (bf16 has float32's range).
+- ``topk``: top-k sparsification with error feedback, against the vector the receivers hold.
+  The sender keeps a replica of what its receivers reconstruct; each State carries the
+  ``density`` x n largest differences between its vector and that replica (indices and
+  float32 values), and the replica takes them. What a State leaves out stays in the
+  difference and goes in a later one (the error feedback), so nothing is lost, only delayed.
+  Every ``keyframe_every``-th State, and every State sent again for an older round (to a
+  neighbour that restarted), is a key frame: the whole float32 vector, which resets the
+  replicas. States are numbered (``seq``) and each update names the one it adds to (``base``):
+  a receiver that missed one cannot rebuild the vector and waits for the next key frame
+  (:class:`Decompressor` says so). Costs 8 bytes a kept value, plus 4 n / keyframe_every.
+
+One replica serves every neighbour: a State is published once to all of them (Zenoh pub/sub),
+so the differences are against the last States sent to the links, as one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from swarmmap.shared.protocol import State, Tensor
+
+log = logging.getLogger("compression")
+
+COMPRESSIONS = ("none", "f16", "bf16", "topk")
+F16_MAX = float(np.finfo(np.float16).max)
+
+
+def to_bf16_bits(values: np.ndarray) -> np.ndarray:
+    """float32 -> bfloat16 (round to nearest even) as uint16 bits."""
+    bits = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
+    rounded = bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))
+    return (rounded >> np.uint32(16)).astype(np.uint16)
+
+
+def from_bf16_bits(bits: np.ndarray) -> np.ndarray:
+    """bfloat16 bits (uint16) -> float32."""
+    return (bits.astype(np.uint32) << np.uint32(16)).view(np.float32)
+
+
+class Compressor:
+    """The sender's side: turns each new State's vector into the fields of a :class:`State`."""
+
+    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100):
+        if mode not in COMPRESSIONS:
+            raise ValueError(f"unknown compression {mode!r}; allowed: {', '.join(COMPRESSIONS)}")
+        if not 0 < density <= 1:
+            raise ValueError(f"topk density must lie in (0, 1], got {density}")
+        self.mode, self.density, self.keyframe_every = mode, density, max(1, keyframe_every)
+        self.replica: np.ndarray | None = None
+        self.seq = -1
+        self.since_keyframe = 0
+        self.warned = False
+
+    def fields(self, params: np.ndarray, keyframe: bool = False) -> dict:
+        """The encoding fields (``encoding``, ``params`` and the rest) of a State carrying
+        ``params``; ``keyframe`` forces a whole vector (a State sent again for an older round)."""
+        vec = np.ascontiguousarray(params, dtype=np.float32)
+        if self.mode == "none":
+            return {"params": Tensor.of(vec, "<f4")}
+        if self.mode == "bf16":
+            return {"encoding": "bf16", "params": Tensor.of(to_bf16_bits(vec), "<u2")}
+        if self.mode == "f16":
+            peak = float(np.abs(vec).max()) if vec.size else 0.0
+            if peak <= F16_MAX:
+                return {"encoding": "f16", "params": Tensor.of(vec.astype(np.float16), "<f2")}
+            if not self.warned:
+                self.warned = True
+                log.warning("a State holds %.3g, beyond half precision (%.0f): sent as float32 (further ones too, "
+                            "without a word)", peak, F16_MAX)
+            return {"params": Tensor.of(vec, "<f4")}
+        self.seq += 1
+        if keyframe or self.replica is None or self.replica.shape != vec.shape or self.since_keyframe + 1 >= self.keyframe_every:
+            self.replica = vec.copy()
+            self.since_keyframe = 0
+            return {"params": Tensor.of(vec, "<f4"), "seq": self.seq}
+        self.since_keyframe += 1
+        diff = vec - self.replica
+        k = min(diff.size, max(1, math.ceil(self.density * diff.size)))
+        idx = np.argpartition(np.abs(diff), diff.size - k)[diff.size - k :] if k < diff.size else np.arange(diff.size)
+        idx = np.sort(idx).astype(np.uint32)
+        values = diff[idx]
+        self.replica[idx] += values
+        return {"encoding": "topk", "params": Tensor.of(values, "<f4"), "indices": Tensor.of(idx, "<u4"),
+                "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
+
+
+class Decompressor:
+    """The receivers' side: the float32 vector a State stands for, per sender (each sender's
+    topk replica is kept). :meth:`vector` returns None when a topk State cannot be rebuilt (an
+    update whose base this receiver missed), with the reason in ``why``."""
+
+    def __init__(self) -> None:
+        self.replicas: dict[int, tuple[int, np.ndarray]] = {}  # sender -> (seq, vector)
+        self.why = ""
+        self.broken = 0  # topk States that could not be rebuilt
+
+    def vector(self, msg: State) -> np.ndarray | None:
+        """The State's vector, float32 (read-only for an uncompressed State: a view of the payload)."""
+        if msg.encoding == "f32":
+            vec = msg.params.numpy()
+            if msg.seq is not None:  # a key frame: the sender's chain starts again here
+                self.replicas[msg.sender] = (msg.seq, vec.copy())
+            return vec
+        if msg.encoding == "f16":
+            return msg.params.numpy().astype(np.float32)
+        if msg.encoding == "bf16":
+            return from_bf16_bits(msg.params.numpy())
+        held = self.replicas.get(msg.sender)
+        if held is not None and held[0] == msg.seq and held[1].size == msg.size:
+            return held[1].copy()  # the same State again (a resend)
+        if held is None or held[0] != msg.base or held[1].size != msg.size:
+            self.broken += 1
+            self.why = (f"topk State {msg.seq} of node {msg.sender} adds to its State {msg.base}, "
+                        + ("but none of its key frames has arrived yet" if held is None else f"but the last one here is {held[0]}")
+                        + ": waiting for its next key frame")
+            return None
+        vec = held[1]
+        vec[msg.indices.numpy()] += msg.params.numpy()
+        self.replicas[msg.sender] = (msg.seq, vec)
+        return vec.copy()
+
+    def forget(self, sender: int) -> None:
+        """Drop a sender's replica (it restarted: its next chain starts with a key frame)."""
+        self.replicas.pop(sender, None)

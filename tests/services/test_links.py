@@ -1,0 +1,119 @@
+"""Algorithm 1 on poor and thin links: States through the wire codec in process, compressed,
+exchanged every few rounds, and rounds that go on without the States that do not come."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from swarmmap.services.learner.codec import StateCodec
+from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, run_algorithm1
+from swarmmap.services.learner.faults import FaultyTransport
+from swarmmap.shared.compression import Compressor
+from swarmmap.shared.config import FaultSettings
+
+from .test_exchange import COMPLETE3, mixing_update, reference
+
+
+def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, faults=None, round_wait=0.0,
+             update=mixing_update, timeout=60):
+    """Every node in a thread, its States through the wire codec (counted), encoded and numbered
+    by a StateCodec; returns results, stats, the hub and what each node put on the wire."""
+    hub = MemoryHub(graph, run="links")
+    wire_rounds: dict[int, list[int]] = {i: [] for i in graph}
+    results, stats, errors = {}, {i: ExchangeStats() for i in graph}, {}
+
+    def node(i):
+        inner = hub.transport(i)
+        spy_send, spy_fields = inner.send_state, inner.send_fields
+        inner.send_state = lambda r, p: (wire_rounds[i].append(r), spy_send(r, p))
+        inner.send_fields = lambda r, f: (wire_rounds[i].append(r), spy_fields(r, f))
+        link = FaultyTransport(inner, i, faults) if faults is not None else inner
+        codec = StateCodec(link, i, Compressor(compression, density, keyframe_every=10), every)
+        try:
+            results[i] = run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i],
+                                        resend_after=0.2, linger=0.5, round_wait=round_wait, peer_timeout=20)
+        except Exception as exc:  # re-raised by the test
+            errors[i] = exc
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout)
+    assert not errors, errors
+    return results, stats, hub, wire_rounds
+
+
+def init_vectors(graph, n=4000):
+    rng = np.random.default_rng(1)
+    return {i: rng.standard_normal(n).astype(np.float32) for i in graph}
+
+
+def test_states_through_the_wire_codec_in_process_give_the_reference_and_count_their_bytes():
+    init = init_vectors(COMPLETE3)
+    results, _, hub, _ = run_wire(COMPLETE3, 8, init)
+    ref = reference(COMPLETE3, 8, init)
+    for i in COMPLETE3:
+        np.testing.assert_allclose(results[i], ref[i], rtol=1e-6)
+    # 9 States (rounds 0..8) of 4000 float32 at least, and RoundCompletes, per node
+    assert all(hub.bytes_sent[i] > 9 * 16_000 for i in COMPLETE3)
+    assert all(hub.bytes_received[i] >= 2 * 9 * 16_000 for i in COMPLETE3)
+
+
+def test_lossless_topk_is_the_reference_and_lossy_topk_sends_a_tenth():
+    init = init_vectors(COMPLETE3)
+    ref = reference(COMPLETE3, 8, init)
+    exact, _, _, _ = run_wire(COMPLETE3, 8, init, compression="topk", density=1.0)
+    for i in COMPLETE3:
+        np.testing.assert_allclose(exact[i], ref[i], rtol=1e-5, atol=1e-6)
+    plain = run_wire(COMPLETE3, 30, init)[2]
+    thin = run_wire(COMPLETE3, 30, init, compression="topk", density=0.01)[2]
+    assert sum(plain.bytes_sent.values()) / sum(thin.bytes_sent.values()) > 3  # RoundCompletes are not compressed
+    states_plain = 31 * 16_000
+    assert all(thin.bytes_sent[i] < states_plain / 5 for i in COMPLETE3)
+
+
+@pytest.mark.parametrize("mode", ["f16", "bf16"])
+def test_half_precision_states_end_near_the_reference(mode):
+    init = init_vectors(COMPLETE3)
+    results, _, _, _ = run_wire(COMPLETE3, 8, init, compression=mode)
+    ref = reference(COMPLETE3, 8, init)
+    for i in COMPLETE3:
+        np.testing.assert_allclose(results[i], ref[i], rtol=2e-2, atol=2e-2)
+
+
+def test_exchange_every_k_rounds_numbers_states_by_training_round():
+    init = init_vectors(COMPLETE3, 16)
+    results, stats, _, wire_rounds = run_wire(COMPLETE3, 4, init, every=5)  # 4 exchanges = 20 training rounds
+    assert sorted(set(wire_rounds[0])) == [0, 5, 10, 15, 20]
+    np.testing.assert_allclose(results[0], reference(COMPLETE3, 4, init)[0], rtol=1e-6)
+    assert stats[0].rounds_done == 4
+
+
+def test_on_a_dead_link_rounds_go_on_after_round_wait_without_leaving_anyone_out(caplog):
+    """Node 2's messages never reach 0 and 1: with round_wait the rounds go on with the States
+    that came, 2 is missing from every round of 0 and 1 but never left out, and 2 (which hears
+    everyone) still gets their States."""
+    faults = FaultSettings(link_success=1e-9, links=[[2, 0], [2, 1]])
+    init = init_vectors(COMPLETE3, 16)
+    t0 = time.monotonic()
+    results, stats, _, _ = run_wire(COMPLETE3, 10, init, faults=faults, round_wait=0.1)
+    assert time.monotonic() - t0 < 15  # not the 30 s a silent neighbour takes to be left out, let alone forever
+    assert stats[0].missed >= 10 and stats[1].missed >= 10
+    assert stats[0].left_out == stats[1].left_out == 0
+    assert stats[2].missed < 10
+    assert all(r.shape == (16,) and np.isfinite(r).all() for r in results.values())
+    assert "left out" not in caplog.text and "goes on without it" not in caplog.text
+
+
+def test_round_wait_changes_nothing_where_every_message_arrives():
+    init = init_vectors(COMPLETE3, 16)
+    results, stats, _, _ = run_wire(COMPLETE3, 10, init, round_wait=5.0)
+    ref = reference(COMPLETE3, 10, init)
+    for i in COMPLETE3:
+        np.testing.assert_allclose(results[i], ref[i], rtol=1e-6)
+        assert stats[i].missed == 0

@@ -1,0 +1,127 @@
+"""Compressed States: each encoding's round trip through the wire codec, top-k's error feedback
+and key frames, and what a receiver does with a chain it cannot follow."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swarmmap.shared.compression import Compressor, Decompressor, from_bf16_bits, to_bf16_bits
+from swarmmap.shared.protocol import ProtocolError, State, Tensor, decode, encode
+
+RUN = "run-c"
+
+
+def wire(fields: dict, sender: int = 1, round: int = 0) -> tuple[State, int]:
+    """A State with these encoding fields, through the codec: the decoded message and its size."""
+    payload = encode(State(run=RUN, sender=sender, round=round, **fields))
+    return decode(payload, State, run=RUN, sender=sender), len(payload)
+
+
+def vectors(n: int = 10_000, steps: int = 30, seed: int = 0):
+    """A drifting parameter vector, as a learner's States are."""
+    rng = np.random.default_rng(seed)
+    v = rng.standard_normal(n).astype(np.float32)
+    for _ in range(steps):
+        v = v + rng.standard_normal(n).astype(np.float32) * 0.01
+        yield v
+
+
+@pytest.mark.parametrize("mode, tol, ratio", [("f16", 1e-3, 1.9), ("bf16", 8e-3, 1.9)])
+def test_half_precisions_round_trip_within_their_precision_at_half_the_bytes(mode, tol, ratio):
+    v = next(vectors())
+    plain = len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
+    msg, size = wire(Compressor(mode).fields(v))
+    back = Decompressor().vector(msg)
+    assert back.dtype == np.float32 and back.shape == v.shape
+    np.testing.assert_allclose(back, v, rtol=tol, atol=1e-6)
+    assert plain / size > ratio
+
+
+def test_bf16_rounds_to_nearest_even():
+    v = np.array([1.0, 1.0 + 2**-8, 1.0 + 3 * 2**-8, -2.5, 3.0e38], np.float32)
+    back = from_bf16_bits(to_bf16_bits(v))
+    assert back.tolist() == [1.0, 1.0, 1.0 + 2**-6, -2.5, pytest.approx(3.0e38, rel=1e-2)]
+
+
+def test_f16_sends_float32_when_values_exceed_half_precision(caplog):
+    v = np.array([1.0, 1e6], np.float32)
+    fields = Compressor("f16").fields(v)
+    assert fields.get("encoding", "f32") == "f32" and "beyond half precision" in caplog.text
+    assert Decompressor().vector(wire(fields)[0]).tolist() == [1.0, 1e6]
+
+
+def test_topk_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back():
+    c, d = Compressor("topk", density=0.02, keyframe_every=1000), Decompressor()
+    sent = 0
+    for v in vectors():
+        back = d.vector(wire(c.fields(v))[0])
+        np.testing.assert_array_equal(back, c.replica)  # bit for bit: both add the same float32 values
+        sent += 1
+    assert sent == 30
+    # What the States left out stays owed, not lost: with the vector held still, the replica closes in.
+    for _ in range(60):
+        back = d.vector(wire(c.fields(v))[0])
+    np.testing.assert_allclose(back, v, atol=1e-6)
+
+
+def test_topk_sends_a_tenth_of_the_bytes_at_density_five_percent_or_less():
+    c = Compressor("topk", density=0.04, keyframe_every=100)
+    plain = compressed = 0
+    for v in vectors(steps=100):
+        plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
+        compressed += wire(c.fields(v))[1]
+    assert plain / compressed > 10
+
+
+def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
+    c, d = Compressor("topk", density=0.05, keyframe_every=5), Decompressor()
+    states = [wire(c.fields(v))[0] for v in vectors(steps=12)]
+    assert [s.encoding for s in states[:6]] == ["f32", "topk", "topk", "topk", "topk", "f32"]
+    assert d.vector(states[0]) is not None and d.vector(states[1]) is not None
+    # states[2] is lost: 3 and 4 cannot be rebuilt, and the receiver says why
+    assert d.vector(states[3]) is None and "waiting for its next key frame" in d.why
+    assert d.vector(states[4]) is None and d.broken == 2
+    np.testing.assert_array_equal(d.vector(states[5]), states[5].params.numpy())
+    assert d.vector(states[6]) is not None
+
+
+def test_a_key_frame_on_demand_starts_the_chain_again():
+    c, d = Compressor("topk", density=0.05, keyframe_every=100), Decompressor()
+    vs = list(vectors(steps=4))
+    for v in vs[:3]:
+        d.vector(wire(c.fields(v))[0])
+    again = wire(c.fields(vs[0], keyframe=True))[0]  # a State of an older round, sent again
+    assert again.encoding == "f32" and again.seq is not None
+    fresh = Decompressor()  # a neighbour that restarted
+    np.testing.assert_array_equal(fresh.vector(again), vs[0])
+    np.testing.assert_array_equal(d.vector(again), vs[0])  # the others start again from it too
+    nxt = wire(c.fields(vs[3]))[0]
+    np.testing.assert_array_equal(fresh.vector(nxt), d.vector(nxt))
+
+
+def tensor(values: np.ndarray) -> dict:
+    return {"dtype": values.dtype.str, "shape": list(values.shape), "data": values.tobytes()}
+
+
+@pytest.mark.parametrize("change, why", [
+    (lambda f: f.update(indices=tensor(np.array([3, 3, 7], np.uint32))), "increase strictly"),
+    (lambda f: f.update(indices=tensor(np.array([3, 5, 99], np.uint32))), "below size"),
+    (lambda f: f.update(params=tensor(np.array([1, np.inf, 2], np.float32))), "non-finite"),
+    (lambda f: f.pop("base"), "needs indices, size, seq and base"),
+])
+def test_hostile_topk_states_are_refused(change, why):
+    fields = {"encoding": "topk", "params": Tensor.of(np.ones(3, np.float32)), "size": 10, "seq": 1, "base": 0,
+              "indices": Tensor.of(np.array([1, 4, 9], np.uint32))}
+    doc = State(run=RUN, sender=1, round=0, **fields).model_dump(mode="python", exclude_none=True)
+    change(doc)
+    import msgpack
+
+    with pytest.raises(ProtocolError, match=why):
+        decode(msgpack.packb(doc, use_bin_type=True), State, run=RUN)
+
+
+def test_non_finite_bf16_bits_are_refused():
+    bits = to_bf16_bits(np.array([1.0, np.inf], np.float32))
+    with pytest.raises(ValueError, match="non-finite"):
+        State(run=RUN, sender=1, round=0, encoding="bf16", params=Tensor.of(bits, "<u2"))
