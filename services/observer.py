@@ -41,10 +41,11 @@ from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bnn import BayesNet, fast_bf16, predict_mean_std
 from swarmmap.shared.bus import Bus
+from swarmmap.shared.compression import Decompressor
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, param_count, pick_device, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, Tensor, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
 FINAL_STATES_WAIT_S = 10.0  # once the run is over, how long the learners' final States may take to arrive
@@ -121,6 +122,8 @@ class Observer:
         self.lock = threading.Lock()
         self.wake = threading.Condition(self.lock)
         self.newest: dict[int, State] = {}  # newest unmapped State per learner
+        self.seen_round: dict[int, int] = {}  # newest State round received per learner
+        self.decompressor = Decompressor()
         self.mapped_round: dict[int, int] = {}
         self.trajectories: dict[int, list[list[float]]] = {}
         self.positions: dict[int, np.ndarray] = {}
@@ -198,9 +201,19 @@ class Observer:
         self.rec.log(f"curves/consensus/robot-{m.sender}", rr.Scalars(m.consensus_error))
 
     def on_state(self, msg: State) -> None:
-        """Keep the newest State of each learner; a State superseded before it was mapped is skipped."""
-        if msg.round % self.map_every and msg.round != self.cfg.learner.rounds:
-            return  # between map rounds: mapping every State would take the CPU the learners need
+        """Keep the newest State of each learner; a State superseded before it was mapped is skipped.
+        A compressed State is rebuilt first (every one of a topk chain is needed)."""
+        if not msg.plain:
+            vec = self.decompressor.vector(msg)
+            if vec is None:
+                return
+            msg = State.model_construct(v=msg.v, kind=msg.kind, run=msg.run, sender=msg.sender, round=msg.round,
+                                        params=Tensor.model_construct(dtype="<f4", shape=[vec.size], data=vec.tobytes()),
+                                        encoding="f32", size=None, indices=None, seq=None, base=None)
+        before = self.seen_round.get(msg.sender, -1)
+        self.seen_round[msg.sender] = max(before, msg.round)
+        if msg.round // self.map_every <= before // self.map_every and msg.round != self.cfg.learner.rounds:
+            return  # no map round since the last State: mapping every State would take the CPU the learners need
         with self.lock:
             self.states_in += 1
             old = self.newest.get(msg.sender)
@@ -213,9 +226,9 @@ class Observer:
 
     def check_state(self, msg: State) -> None:
         """Refuse a State this run's model cannot hold."""
-        size = state_copies(self.cfg.learner.algorithm) * self.n_params  # DSGT's State carries its tracker too
-        if self.n_params and msg.params.shape[0] != size:
-            raise ProtocolError("shape", f"State.params has {msg.params.shape[0]} values, this run's States have {size}")
+        size = state_copies(self.cfg.learner) * self.n_params  # DSGT's State carries its tracker too, RAMEN's its counts
+        if self.n_params and msg.vector_size != size:
+            raise ProtocolError("shape", f"a State of {msg.vector_size} values, this run's States have {size}")
 
     # ------------------------------------------------------------------ maps
     def map_state(self, msg: State) -> float:

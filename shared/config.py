@@ -194,6 +194,22 @@ class LearnerSettings(Section):
     silent_after_s: float = Field(30.0, gt=0, description="leave a neighbour out of the round when it has been silent "
                                                          "this long (it is taken back when it sends again)")
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
+    consensus: Literal["dinno", "ramen", "sigma"] = Field(
+        "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
+                             "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")
+    consensus_min_weight: float = Field(
+        0.05, gt=0, le=1, description="sigma: a node's pull on a parameter stays within [this, 2 - this] x DiNNO's")
+    exchange_every: int = Field(1, ge=1, description="exchange States every this many rounds; the rounds between train "
+                                                     "against the neighbours' last States (rounds must be a multiple)")
+    stale_rounds: int = Field(20, ge=0, description="keep pulling towards a neighbour's newest State for this many rounds "
+                                                   "when no newer one comes (lost messages; at least exchange_every)")
+    round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
+                                                       "States that arrived (0: wait for every neighbour, as Algorithm 1)")
+    compression: Literal["none", "f16", "bf16", "topk"] = Field(
+        "none", description="State encoding on the wire: float32, half precision, bfloat16, or top-k differences with "
+                            "error feedback")
+    topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
+    keyframe_every: int = Field(100, ge=1, description="topk: every this many States, one carries the whole vector")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
 
@@ -207,6 +223,13 @@ class LearnerSettings(Section):
             raise ValueError(f"model_shape must start with 2, end with 1 and have a hidden layer, got {self.model_shape}")
         if any(w < 1 for w in self.model_shape):
             raise ValueError("model_shape widths must be positive")
+        if self.consensus == "sigma" and self.model != "bnn":
+            raise ValueError("consensus sigma weighs by the posterior's sigma: it needs model bnn (a FourierNet has no "
+                             "posterior; ramen works with either)")
+        if self.consensus != "dinno" and self.algorithm != "dinno":
+            raise ValueError(f"consensus {self.consensus} weighs DiNNO's consensus: it needs algorithm dinno")
+        if self.rounds % self.exchange_every:
+            raise ValueError(f"rounds ({self.rounds}) must be a multiple of exchange_every ({self.exchange_every})")
         return self
 
 

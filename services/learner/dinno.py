@@ -92,9 +92,10 @@ class Node(Protocol):
     def restore(self, doc: dict) -> None: ...
 
 
-def state_copies(algorithm: str) -> int:
-    """How many parameter-sized vectors a State of ``algorithm`` holds (DSGT: theta and its tracker)."""
-    return 2 if algorithm == "dsgt" else 1
+def state_copies(settings: LearnerSettings) -> int:
+    """How many parameter-sized vectors a State holds (DSGT: theta and its tracker; RAMEN's
+    consensus: theta and its gradient counts)."""
+    return 2 if settings.algorithm == "dsgt" or (settings.algorithm == "dinno" and settings.consensus == "ramen") else 1
 
 
 class LocalNode:
@@ -150,7 +151,7 @@ class LocalNode:
 
     def state_size(self) -> int:
         """Values in a State of this node's kind."""
-        return state_copies(self.s.algorithm) * self.param_count
+        return state_copies(self.s) * self.param_count
 
     def rejoin(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """The state a node that was away starts from when it catches up with its team: its own,
@@ -161,12 +162,17 @@ class LocalNode:
 
     def batch_loss(self) -> torch.Tensor:
         """BCE on a random batch, plus kl_weight x KL to the prior for a Bayesian network."""
+        bce, kl = self.batch_terms()
+        return bce if kl is None else bce + kl
+
+    def batch_terms(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The batch loss's two terms: BCE on a random batch, and kl_weight x KL to the prior
+        (None for a deterministic network)."""
         idx = torch.randint(0, len(self.points), (min(self.s.batch_size, len(self.points)),), generator=self.gen)
         idx = idx.to(self.device)
-        loss = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
-        if self.bayesian and self.s.kl_weight > 0:
-            loss = loss + self.s.kl_weight * self.model.kl()
-        return loss
+        bce = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
+        kl = self.s.kl_weight * self.model.kl() if self.bayesian and self.s.kl_weight > 0 else None
+        return bce, kl
 
     def gradient(self) -> torch.Tensor:
         """The flat gradient of the batch loss at the current parameters."""
@@ -176,7 +182,16 @@ class LocalNode:
 
 
 class DinnoNode(LocalNode):
-    """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE."""
+    """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE.
+
+    ``consensus`` weighs each parameter's pull towards each neighbour j by a per-parameter
+    factor a_ij and a target z_ij (see the README's "Consensus weights"): penalty
+    rho x sum_j a_ij (theta - z_ij)^2 and dual step 2 rho a_ij (theta_i - z_ij). ``dinno``:
+    a = 1, z the midpoint (DiNNO exactly). ``ramen``: RAMEN's weights from how many steps gave
+    each parameter a gradient (the counts travel in the State, after the parameters).
+    ``sigma``: z the precision-weighted midpoint of the two posteriors' means and
+    a_ij = 2 sigma_i^2 / (sigma_i^2 + sigma_j^2), clamped to [m, 2 - m]: a node moves towards its
+    neighbour where it is less sure than the neighbour, and stays where it is surer."""
 
     def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
                  settings: LearnerSettings, seed: int):
@@ -193,6 +208,18 @@ class DinnoNode(LocalNode):
         else:
             self.groups = [[p for n, p in zip(names, params) if not is_rho(n)], [p for n, p in zip(names, params) if is_rho(n)]]
         self.optimizers = None if settings.optimizer_per_round else self._optimizers(float(self.lrs[0]))
+        self.consensus = settings.consensus
+        self.mu_at, self.rho_at = sigma_pairs(model) if self.consensus == "sigma" else (None, None)
+        self.counts = torch.zeros(self.param_count, device=self.device) if self.consensus == "ramen" else None
+        # Each neighbour's newest State: (round it arrived, parameters, RAMEN counts); it keeps pulling
+        # for stale_rounds rounds (at least exchange_every) when no newer one comes.
+        self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
+        self.keep_for = max(settings.stale_rounds, settings.exchange_every)
+
+    def state(self) -> np.ndarray:
+        """[theta], or with RAMEN's consensus [theta, gradient counts]."""
+        extra = [self.counts] if self.counts is not None else []
+        return flatten_into([*self.model.parameters(), *extra], self.new_state(self.state_size()))
 
     def checkpoint(self) -> dict:
         doc = super().checkpoint()
@@ -216,30 +243,81 @@ class DinnoNode(LocalNode):
         n_rho = int(self.rho_mask.sum())
         return self.rho_mask.numel() - n_rho, n_rho
 
-    def consensus_penalty(self, th: torch.Tensor, th_reg: torch.Tensor) -> torch.Tensor:
-        """The round's pull towards the neighbours' midpoints ``th_reg`` (one row per neighbour)."""
+    def consensus_penalty(self, th: torch.Tensor, th_reg: torch.Tensor, a: torch.Tensor | None = None) -> torch.Tensor:
+        """The round's pull towards the neighbours' targets ``th_reg`` (one row per neighbour),
+        each parameter's weighted by ``a`` (same shape; None: 1 everywhere)."""
+
+        def l2(x: torch.Tensor, target: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
+            sq = torch.square(x[None, :] - target)
+            return torch.sum(sq if w is None else w * sq)
+
         if self.strategy == "uniform-l2":
-            return self.rho * torch.sum(torch.square(th[None, :] - th_reg))
+            return self.rho * l2(th, th_reg, a)
         mu, rho = ~self.rho_mask, self.rho_mask
-        penalty = self.s.w_mu * self.rho * torch.sum(torch.square(th[mu][None, :] - th_reg[:, mu]))
+        a_mu, a_rho = (None, None) if a is None else (a[:, mu], a[:, rho])
+        penalty = self.s.w_mu * self.rho * l2(th[mu], th_reg[:, mu], a_mu)
         if self.strategy == "separate-l2":
-            return penalty + self.s.w_rho * self.rho * torch.sum(torch.square(th[rho][None, :] - th_reg[:, rho]))
+            return penalty + self.s.w_rho * self.rho * l2(th[rho], th_reg[:, rho], a_rho)
         sigma = F.softplus(th[rho])[None, :].expand(len(th_reg), -1)
         kl = gaussian_kl(torch.zeros_like(sigma), sigma, 0.0, F.softplus(th_reg[:, rho]))
-        return penalty + self.s.w_rho * self.rho * kl.sum()
+        return penalty + self.s.w_rho * self.rho * (kl.sum() if a_rho is None else (a_rho * kl).sum())
 
-    def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
-        """One DiNNO round for this node given neighbours' parameters of round ``k``."""
-        th_i = torch.as_tensor(theta_i, device=self.device)
+    def targets(self, th_i: torch.Tensor, thj: torch.Tensor, cj: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Each neighbour's target z_ij (rows) and weights a_ij (None: DiNNO's, 1 everywhere)."""
+        if self.consensus == "dinno":
+            return (thj + th_i) / 2, None
+        if self.consensus == "ramen":
+            return ramen_targets(th_i, self.counts, thj, cj)
+        return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.s.consensus_min_weight)
+
+    def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        """One DiNNO round for this node given neighbours' States of round ``k`` (an exchange
+        round): a dual step per link whose State came, then the primal steps against every
+        neighbour whose State is recent enough (``stale_rounds``)."""
+        n = self.param_count
+        st = torch.as_tensor(state_i, device=self.device)
+        th_i = st[:n]
         set_flat(self.model, th_i)
+        if self.counts is not None:
+            self.counts = st[n:].clone()
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
-        th_reg = duals = None
         if peers:
-            thj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
-            for j, th in zip(peers, thj):
-                self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + self.rho * (th_i - th)
-            duals = torch.stack([self.duals[j] for j in peers]).sum(0)  # the links of this round only
-            th_reg = (thj + th_i) / 2
+            stj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
+            thj, cj = stj[:, :n], (stj[:, n:] if self.counts is not None else None)
+            z, a = self.targets(th_i, thj, cj)
+            for row, j in enumerate(peers):
+                step = self.rho * (th_i - thj[row]) if a is None else 2 * self.rho * a[row] * (th_i - z[row])
+                self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
+                self.known[j] = (k, thj[row], None if cj is None else cj[row])
+        self._primal(k)
+        return self.state()
+
+    def local_update(self, k: int, state_i: np.ndarray) -> np.ndarray:
+        """A round between exchanges (``exchange_every`` > 1): the primal steps against the
+        neighbours' newest States (their targets recomputed from this node's parameters now),
+        the duals left as the last exchange made them."""
+        n = self.param_count
+        st = torch.as_tensor(state_i, device=self.device)
+        set_flat(self.model, st[:n])
+        if self.counts is not None:
+            self.counts = st[n:].clone()
+        self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)
+        self._primal(k)
+        return self.state()
+
+    def _primal(self, k: int) -> None:
+        """``primal_iterations`` optimizer steps on the loss plus the consensus terms of the
+        neighbours whose newest State is at most ``keep_for`` rounds old."""
+        for j in [j for j, (arrived, _, _) in self.known.items() if k - arrived >= self.keep_for]:
+            del self.known[j]  # too old: a neighbour gone, or a link that has stayed down
+        th_reg = a = duals = None
+        if self.known:
+            ids = sorted(self.known)
+            thj = torch.stack([self.known[j][1] for j in ids])
+            cj = torch.stack([self.known[j][2] for j in ids]) if self.counts is not None else None
+            th_i = torch.nn.utils.parameters_to_vector(self.model.parameters()).detach()
+            th_reg, a = self.targets(th_i, thj, cj)
+            duals = torch.stack([self.duals[j] for j in ids]).sum(0)  # the links this node hears from
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])
         if self.optimizers is None:
             optimizers = self._optimizers(lr)
@@ -251,14 +329,83 @@ class DinnoNode(LocalNode):
         for _ in range(self.s.primal_iterations):
             for opt in optimizers:
                 opt.zero_grad()
-            loss = self.batch_loss()
+            if self.counts is None:
+                loss = self.batch_loss()
+            else:  # RAMEN counts the steps that gave each parameter a gradient from the data
+                bce, loss = self.batch_terms()
+                bce.backward()
+                self.counts += torch.cat([(p.grad != 0).reshape(-1) for p in self.model.parameters()]).float()
             if th_reg is not None:
                 th = torch.nn.utils.parameters_to_vector(self.model.parameters())
-                loss = loss + torch.dot(th, duals) + self.consensus_penalty(th, th_reg)
-            loss.backward()  # one backward of the sum: both groups' gradients before either step
+                extra = torch.dot(th, duals) + self.consensus_penalty(th, th_reg, a)
+                loss = extra if loss is None else loss + extra
+            if loss is not None:
+                loss.backward()  # one backward of the sum: both groups' gradients before either step
             for opt in optimizers:
                 opt.step()
-        return self.state()
+
+
+def sigma_pairs(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each Bayesian mean (``*_mu``) and its rho (``*_rho``) lie in the flat parameter vector."""
+    offsets, at = {}, 0
+    for name, p in model.named_parameters():
+        offsets[name] = (at, p.numel())
+        at += p.numel()
+    mu, rho = [], []
+    for name, (start, count) in offsets.items():
+        if name.endswith("_mu") and name[:-3] + "_rho" in offsets:
+            mu.append(torch.arange(start, start + count))
+            rho.append(torch.arange(offsets[name[:-3] + "_rho"][0], offsets[name[:-3] + "_rho"][0] + count))
+    if not mu:
+        raise ValueError("consensus sigma needs a Bayesian network (parameters *_mu with their *_rho)")
+    device = next(model.parameters()).device
+    return torch.cat(mu).to(device), torch.cat(rho).to(device)
+
+
+def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rho_at: torch.Tensor,
+                  min_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``sigma`` consensus: per neighbour, the target and weight of every parameter.
+
+    For each Bayesian mean, the product of the two Gaussians N(mu_i, sigma_i^2) and
+    N(mu_j, sigma_j^2) has its mean at the precision-weighted midpoint
+    z = (mu_i / sigma_i^2 + mu_j / sigma_j^2) / (1 / sigma_i^2 + 1 / sigma_j^2), which this node
+    approaches with weight a = 2 sigma_i^2 / (sigma_i^2 + sigma_j^2) (1 where they are equally
+    sure, as DiNNO; towards 2 where this node is the less sure). Every other parameter (rho
+    itself, the sine layer, the output layer) keeps DiNNO's midpoint and weight 1."""
+    z = (thj + th_i) / 2
+    a = torch.ones_like(thj)
+    var_i = F.softplus(th_i[rho_at]).square()
+    var_j = F.softplus(thj[:, rho_at]).square()
+    share = var_i / (var_i + var_j)  # how much of the way to the neighbour's mean the product's mean lies
+    z[:, mu_at] = th_i[mu_at] + share * (thj[:, mu_at] - th_i[mu_at])
+    a[:, mu_at] = (2 * share).clamp(min_weight, 2 - min_weight)
+    return z, a
+
+
+def ramen_targets(th_i: torch.Tensor, c_i: torch.Tensor, thj: torch.Tensor, cj: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``ramen`` consensus (RAMEN, Zhao et al. RSS 2025, ``scaling_AUQ_CADMM``): each side's
+    weight W = p c + q maps its gradient count c linearly onto [rho / 1000, rho]; the target is
+    the W-weighted midpoint and the pull is W / rho (penalty W_i (theta - z)^2, dual step
+    2 W_i W_j / (W_i + W_j) (theta_i - theta_j)). RAMEN takes p and q from the range of the two
+    sides' summed counts, which works for its hash grid, where many counts are 0; a dense
+    network's counts are all far from 0, and that scaling then gives negative weights (and a
+    target that runs off to infinity): here the range is that of both sides' counts. Counts
+    alike everywhere give DiNNO's midpoint and weight."""
+    z = torch.empty_like(thj)
+    a = torch.empty_like(thj)
+    for row in range(len(thj)):
+        lo = torch.minimum(c_i.min(), cj[row].min())
+        hi = torch.maximum(c_i.max(), cj[row].max())
+        if hi <= lo:
+            z[row], a[row] = (th_i + thj[row]) / 2, 1.0
+            continue
+        p = (1 - 1e-3) / (hi - lo)  # in units of rho
+        q = 1e-3 - p * lo
+        w_i, w_j = p * c_i + q, p * cj[row] + q
+        z[row] = (w_i * th_i + w_j * thj[row]) / (w_i + w_j)
+        a[row] = w_i
+    return z, a
 
 
 @torch.no_grad()

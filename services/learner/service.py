@@ -27,18 +27,20 @@ import time
 import numpy as np
 import torch
 
+from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce, warm_up
-from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, PeerFailure, implausible, run_algorithm1
+from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, MemoryTransport, PeerFailure, implausible, run_algorithm1
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
 from swarmmap.shared.bus import Bus
+from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap, encode_state
+from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap, all_finite, encode_state
 
 log = logging.getLogger("learner")
 
@@ -113,6 +115,7 @@ class RobotLearner:
         # reported for are published too, so that an observer sees the maps form either way.
         self.state_pub = bus.publisher(bus.keys.state(robot)) if self.s.transport != "zenoh" else None
         self.stats = ExchangeStats()
+        self.wire: MemoryTransport | None = None  # in process: its end of the hub, which counts the bytes
         self.compute_s = 0.0
         self.t_start = 0.0
         self.start_round = 0
@@ -146,7 +149,7 @@ class RobotLearner:
 
     def counters(self) -> dict[str, float]:
         """This learner's counters, including those of the runs it resumed."""
-        sent, received = exchange_bytes(self.bus, self.robot)
+        sent, received = self.wire.wire_bytes() if self.wire is not None else exchange_bytes(self.bus, self.robot)
         wall = time.monotonic() - self.t_start if self.t_start else 0.0
         now = {"bytes_sent": sent, "bytes_received": received, "compute_s": self.compute_s, "wait_s": self.stats.wait_s,
                "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": wall}
@@ -253,7 +256,8 @@ class RobotLearner:
     def refused(self) -> int:
         """Messages this learner refused: malformed or foreign ones (its bus), implausible or
         far-future States, Samples after the last."""
-        return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused
+        wire = sum(self.wire.refused.values()) if self.wire is not None else 0
+        return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused + wire
 
     def check_state(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
         if theirs.size != self.node.state_size():
@@ -261,20 +265,28 @@ class RobotLearner:
         params_of = self.node.params_of  # DSGT's State also carries its gradient tracker: judge the parameters
         return implausible(params_of(theirs), None if own is None else params_of(own), self.s.max_state_distance)
 
-    def node_update(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
-        every = self.s.checkpoint_every
-        if every and k % every == 0 and k != self.start_round and self.checkpoint_path is not None:
-            self.save_checkpoint(k, theta)
-        if self.s.data == "online":  # DiNNO's sliding window over the scans received so far
-            self.points, self.labels = self.collector.arrays(self.s.window_scans)
-            self.node.set_data(self.points, self.labels)
-        if k % self.s.eval_every == 0:
-            m = self.publish_metrics(k, theta, peers)
-            log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
-        t0 = time.perf_counter()
-        out = self.node.update(k, theta, peers)
-        self.compute_s += time.perf_counter() - t0
-        return out
+    def node_update(self, c: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        """Algorithm 1's round ``c``: training rounds c E .. c E + E - 1 (E = exchange_every), the
+        first with the neighbours' States of this exchange, the others against them as they were."""
+        s, e = self.s, self.s.exchange_every
+        every = s.checkpoint_every
+        if every and (c * e) % every < e and c != self.start_round and self.checkpoint_path is not None:
+            self.save_checkpoint(c, theta)
+        for k in range(c * e, (c + 1) * e):
+            if s.data == "online":  # DiNNO's sliding window over the scans received so far
+                self.points, self.labels = self.collector.arrays(s.window_scans)
+                self.node.set_data(self.points, self.labels)
+            if k % s.eval_every == 0:
+                m = self.publish_metrics(k, theta, peers)
+                log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
+            t0 = time.perf_counter()
+            theta = self.node.update(k, theta, peers) if k == c * e else self.node.local_update(k, theta)
+            self.compute_s += time.perf_counter() - t0
+            if not all_finite(self.node.params_of(theta)):
+                raise LearnerError(f"robot {self.robot}: training diverged in round {k}: its parameters are no longer "
+                                   f"finite (settings too aggressive for this plan: lr_start {s.lr_start:g}, rho_init "
+                                   f"{s.rho_init:g}, consensus {s.consensus})", 6)
+        return theta
 
     def train(self, transport, stop: threading.Event) -> None:
         """Algorithm 1 for ``rounds`` rounds over ``transport``, then the final metrics and outputs."""
@@ -282,12 +294,12 @@ class RobotLearner:
         self.t_start = time.monotonic()
         try:
             start = self.node.state() if self.start_state is None else self.start_state
-            final = run_algorithm1(robot, self.neighbours, s.rounds, start, self.node_update, transport,
+            final = run_algorithm1(robot, self.neighbours, s.rounds // s.exchange_every, start, self.node_update, transport,
                                    start_round=self.start_round, stats=self.stats, stop=stop,
                                    peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
                                    check_state=self.check_state, silent_after=s.silent_after_s,
                                    rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s,
-                                   keep_rounds=s.checkpoint_every + 2)
+                                   keep_rounds=-(-s.checkpoint_every // s.exchange_every) + 2, round_wait=s.round_wait_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
@@ -339,11 +351,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
             if s.algorithm == "centralized":
                 train_centralized(learners, stop)
             elif inproc:
-                hub = MemoryHub({r.robot: r.neighbours for r in learners})
-                transports = {r.robot: hub.transport(r.robot) for r in learners}
-                if any_faults(cfg.faults):
-                    transports = {r: FaultyTransport(t, r, cfg.faults) for r, t in transports.items()}
-                run_all(learners, transports, stop)
+                hub = MemoryHub({r.robot: r.neighbours for r in learners}, run=cfg.run_id)  # through the wire codec
+                for r in learners:
+                    r.wire = hub.transport(r.robot)
+                run_all(learners, {r.robot: links(r.wire, r.robot, cfg) for r in learners}, stop)
             else:
                 # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
@@ -352,7 +363,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 me.node.new_state = transport.new_state  # States written straight into their payloads
                 if any_faults(cfg.faults):
                     log.warning("robot %d: injecting faults on its incoming links: %s", me.robot, cfg.faults.model_dump())
-                    transport = FaultyTransport(transport, me.robot, cfg.faults)
+                transport = links(transport, me.robot, cfg)
                 bus.announce(me.robot, service="exchange")
                 missing = bus.wait_alive("exchange", {str(j) for j in me.neighbours}, s.peer_timeout_s, stop)
                 if me.neighbours and missing == {str(j) for j in me.neighbours} and not stop.is_set():
@@ -364,7 +375,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 # that restarts behind a finished team catches up to it.
                 deadline = time.monotonic() + (s.peer_timeout_s if bus.alive("recorder") else 0.5)
                 while not stop.wait(min(s.resend_after_s, max(0.0, deadline - time.monotonic()))) and time.monotonic() < deadline:
-                    transport.send_state(s.rounds, me.final_state)
+                    transport.send_state(s.rounds // s.exchange_every, me.final_state)
         except LearnerError as exc:
             log.error("%s", exc)
             return exc.status
@@ -377,6 +388,15 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         if inproc or s.algorithm == "centralized":
             stop.wait(s.peer_timeout_s if bus.alive("recorder") else 0.5)
     return 0
+
+
+def links(transport, robot: int, cfg: RunConfig) -> StateCodec:
+    """A node's links as its settings ask: faults injected where the run's ``faults`` say, States
+    encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``)."""
+    s = cfg.learner
+    if any_faults(cfg.faults):
+        transport = FaultyTransport(transport, robot, cfg.faults)
+    return StateCodec(transport, robot, Compressor(s.compression, s.topk_density, s.keyframe_every), s.exchange_every)
 
 
 def train_centralized(learners: list[RobotLearner], stop: threading.Event) -> None:
@@ -400,6 +420,7 @@ def settings_fingerprint(cfg: RunConfig) -> dict:
     return {"checkpoint_format": 2, "seed": cfg.seed, "robots": cfg.robots, "model": s.model,
             "model_shape": list(s.model_shape), "algorithm": s.algorithm,
             "regularization": s.regularization if s.model == "bnn" else None, "data": s.data,
+            "consensus": s.consensus, "exchange_every": s.exchange_every,
             "floorplan": cfg.world.floorplan, "waypoints": cfg.world.waypoints}
 
 

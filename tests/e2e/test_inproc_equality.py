@@ -24,9 +24,14 @@ def run(run_dir, *extra):
     return json.loads((run_dir / "summary.json").read_text())
 
 
-@pytest.mark.parametrize("model", ["fourier", "bnn"])
-def test_zenoh_run_equals_inproc_run(tmp_path, model):
-    extra = ["--set", f"learner.model={model}"]
+THIN = ["--set", "learner.consensus=sigma", "--set", "learner.compression=topk", "--set", "learner.topk_density=0.05",
+        "--set", "learner.keyframe_every=3", "--set", "learner.exchange_every=3"]
+
+
+@pytest.mark.parametrize("model, links", [("fourier", []), ("bnn", []), ("bnn", THIN)],
+                         ids=["fourier", "bnn", "bnn-sigma-topk-every-3"])
+def test_zenoh_run_equals_inproc_run(tmp_path, model, links):
+    extra = ["--set", f"learner.model={model}", *links]
     if model == "bnn":
         extra += ["--set", "learner.model_shape=[2,64,32,32,1]"]
     zenoh = run(tmp_path / "zenoh", *extra)
@@ -41,3 +46,6 @@ def test_zenoh_run_equals_inproc_run(tmp_path, model):
             torch.testing.assert_close(a[name], b[name], rtol=0, atol=1e-6, msg=f"robot {robot} {name}")
         assert zenoh["learners"][robot]["final_val_bce"] == pytest.approx(inproc["learners"][robot]["final_val_bce"],
                                                                           abs=1e-6)
+        # Both count the bytes of Algorithm 1's messages as encoded on the wire (resends may differ)
+        sent = zenoh["learners"][robot]["bytes_sent"], inproc["learners"][robot]["bytes_sent"]
+        assert 0.7 < sent[0] / sent[1] < 1.5, sent

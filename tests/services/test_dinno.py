@@ -110,3 +110,90 @@ def test_dsgt_tracks_the_average_gradient():
     mean_y = torch.stack([n.y for n in dn]).mean(0)
     mean_g = torch.stack([n.g_old for n in dn]).mean(0)
     torch.testing.assert_close(mean_y, mean_g, rtol=1e-4, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- consensus weights
+
+
+def bnn_settings(**over):
+    base = dict(model="bnn", model_shape=[2, 16, 8, 1], rounds=20, primal_iterations=3, batch_size=256, rho_init=0.1)
+    return LearnerSettings(**(base | over))
+
+
+def test_sigma_consensus_moves_the_less_sure_node_towards_the_surer_one():
+    from swarmmap.services.learner.dinno import sigma_pairs, sigma_targets
+
+    s = bnn_settings(consensus="sigma")
+    model = model_from_settings(s, BOUNDS, 0)
+    mu_at, rho_at = sigma_pairs(model)
+    th_i = torch.nn.utils.parameters_to_vector(model.parameters()).detach()
+    th_j = th_i + 1.0
+    th_j[rho_at] = th_i[rho_at]  # equally sure: DiNNO's midpoint and weight everywhere
+    z, a = sigma_targets(th_i, th_j[None], mu_at, rho_at, 0.05)
+    torch.testing.assert_close(z[0], (th_i + th_j) / 2)
+    torch.testing.assert_close(a[0], torch.ones_like(th_i))
+    th_j[rho_at] = th_i[rho_at] - 6.0  # the neighbour far surer (sigma about e^-6 x this node's)
+    z, a = sigma_targets(th_i, th_j[None], mu_at, rho_at, 0.05)
+    assert torch.allclose(z[0, mu_at], th_j[mu_at], atol=1e-3)  # the product of the Gaussians sits at its mean
+    assert torch.allclose(a[0, mu_at], torch.full_like(a[0, mu_at], 1.95))  # and this node is pulled hard (clamped)
+    z_back, a_back = sigma_targets(th_j, th_i[None], mu_at, rho_at, 0.05)  # seen from the surer node
+    assert torch.allclose(z_back[0, mu_at], th_j[mu_at], atol=1e-3) and torch.allclose(a_back[0, mu_at], torch.full_like(a[0, mu_at], 0.05))
+    others = torch.ones_like(th_i, dtype=torch.bool)
+    others[mu_at] = False
+    torch.testing.assert_close(z[0, others], ((th_i + th_j) / 2)[others])  # rho, the sine and output layers: DiNNO's
+    assert (a[0, others] == 1).all()
+
+
+def test_sigma_needs_a_bayesian_network_and_dinno():
+    with pytest.raises(ValueError, match="needs model bnn"):
+        LearnerSettings(consensus="sigma")
+    with pytest.raises(ValueError, match="needs algorithm dinno"):
+        LearnerSettings(consensus="ramen", algorithm="dsgd")
+    with pytest.raises(ValueError, match="multiple of exchange_every"):
+        LearnerSettings(rounds=25, exchange_every=10)
+
+
+def test_ramen_weights_follow_ramens_scaling_and_reduce_to_dinno_for_equal_counts():
+    from swarmmap.services.learner.dinno import ramen_targets
+
+    th_i, th_j = torch.zeros(4), torch.tensor([[1.0, 1.0, 1.0, 1.0]])
+    z, a = ramen_targets(th_i, torch.full((4,), 5.0), th_j, torch.full((1, 4), 5.0))
+    torch.testing.assert_close(z[0], torch.full((4,), 0.5))
+    torch.testing.assert_close(a[0], torch.ones(4))
+    c_i, c_j = torch.tensor([0.0, 10.0, 10.0, 20.0]), torch.tensor([[10.0, 0.0, 10.0, 20.0]])
+    z, a = ramen_targets(th_i, c_i, th_j, c_j)
+    w_i = torch.tensor([1e-3, 0.5005, 0.5005, 1.0])  # counts 0..20 onto [rho / 1000, rho], in units of rho
+    w_j = torch.tensor([0.5005, 1e-3, 0.5005, 1.0])
+    torch.testing.assert_close(a[0], w_i)
+    torch.testing.assert_close(z[0], (w_i * th_i + w_j * th_j[0]) / (w_i + w_j))
+    assert z[0, 0] > 0.99 and z[0, 1] < 0.01  # towards the side that saw the parameter's data
+    # counts all far from 0, as a dense network's are: weights stay positive, targets between the two
+    z, a = ramen_targets(th_i, torch.tensor([500.0, 510, 520, 530]), th_j, torch.tensor([[530.0, 520, 510, 500]]))
+    assert (a > 0).all() and (z >= 0).all() and (z <= 1).all()
+
+
+def test_ramen_counts_travel_in_the_state_and_grow_with_the_steps():
+    s = LearnerSettings(model_shape=[2, 16, 8, 1], consensus="ramen", rounds=4, primal_iterations=3, batch_size=256)
+    nodes = [DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(i), s, seed=i + 1) for i in range(2)]
+    n = nodes[0].param_count
+    th = {i: nodes[i].state().copy() for i in range(2)}
+    assert th[0].shape == (2 * n,) and (th[0][n:] == 0).all()
+    for k in range(2):
+        th = {i: nodes[i].update(k, th[i], {1 - i: th[1 - i]}).copy() for i in range(2)}
+    counts = th[0][n:]
+    assert counts.max() == 6 and counts.min() >= 0  # 2 rounds x 3 steps, a count per step with a gradient
+
+
+def test_rounds_between_exchanges_pull_towards_the_last_states_and_keep_the_duals():
+    s = LearnerSettings(model_shape=[2, 16, 8, 1], rounds=4, primal_iterations=3, batch_size=256, rho_init=1.0)
+    a = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+    lone = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+    far = a.state().copy() + 0.5
+    own = a.update(0, a.state().copy(), {1: far}).copy()
+    duals = a.duals[1].clone()
+    lone.update(0, lone.state().copy(), {})
+    pulled = a.local_update(1, own).copy()
+    alone = lone.local_update(1, own).copy()
+    torch.testing.assert_close(a.duals[1], duals)
+    # the stale neighbour still pulls: this node ends nearer to it than one trained alone from the same place
+    assert np.linalg.norm(pulled - far) < np.linalg.norm(alone - far)
