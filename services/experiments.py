@@ -2,6 +2,7 @@
 
     swarmmap experiment kl-sweep --preset demo --out results/kl        # the paper's Figure 6
     swarmmap experiment regularization --preset demo --out results/reg # its Figures 7 and 8
+    swarmmap experiment consensus --preset demo --out results/cons     # consensus rules, poor links, compression
     swarmmap experiment score RUN_DIR                                  # uncertainty scores of one run
 
 Each experiment runs the real system (``swarmmap up``, learners in one process by default,
@@ -17,6 +18,11 @@ over observed and never-observed cells).
   ``separate-kl`` and ``--seeds`` seeds each; validation-loss curves (mean over agents and
   seeds, with their spread), a table of final losses with the percentage difference of
   separate-kl against each other strategy, and the mean/std maps of the best run.
+- ``consensus``: ``--robots`` agents, consensus rules (``learner.consensus``) x link success
+  (``faults.link_success`` drawn per link and round, with ``learner.round_wait_s`` below 100%) x exchange intervals
+  (``learner.exchange_every``), then each ``--compression`` mode over perfect links; curves of
+  val_bce against round and against bytes sent, a table with sigma's wins per seed, and the
+  bytes and loss of each compression against float32.
 """
 
 from __future__ import annotations
@@ -55,6 +61,15 @@ def read_metrics(run_dir: Path) -> dict[int, list[tuple[int, float]]]:
     with (run_dir / "metrics.csv").open() as f:
         for row in csv.DictReader(f):
             out.setdefault(int(row["robot"]), {})[int(row["round"])] = float(row["val_bce"])
+    return {r: sorted(v.items()) for r, v in sorted(out.items())}
+
+
+def read_bytes(run_dir: Path) -> dict[int, list[tuple[int, int]]]:
+    """Per robot, (round, bytes sent on Algorithm 1's links so far) in round order."""
+    out: dict[int, dict[int, int]] = {}
+    with (run_dir / "metrics.csv").open() as f:
+        for row in csv.DictReader(f):
+            out.setdefault(int(row["robot"]), {})[int(row["round"])] = int(row["bytes_sent"])
     return {r: sorted(v.items()) for r, v in sorted(out.items())}
 
 
@@ -445,6 +460,168 @@ def regularization(args: argparse.Namespace) -> int:
     return 0
 
 
+CONSENSUS = ("dinno", "ramen", "sigma")
+COMPRESSIONS = ("none", "f16", "bf16", "topk")
+
+
+def cell_name(consensus: str, link: float, every: int, compression: str) -> str:
+    return f"{consensus}-link{link:g}-every{every}-{compression}"
+
+
+def consensus_cells(args: argparse.Namespace) -> list[tuple[str, float, int, str]]:
+    """(consensus, link success, exchange_every, compression) of every run of a seed: the grid of
+    consensus x links x exchange intervals uncompressed, then each compression mode over perfect
+    links every round for the ``--compression-consensus`` rules."""
+    cells = [(c, link, every, "none") for link in args.link_success for every in args.exchange_every for c in args.consensus]
+    cells += [(c, 1.0, 1, mode) for mode in args.compression if mode != "none" for c in args.compression_consensus]
+    return list(dict.fromkeys(cells))
+
+
+def consensus(args: argparse.Namespace) -> int:
+    """Uncertainty-weighted consensus under poor links and compressed States (issue 13's grid)."""
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    base = base_config(args).model_copy(update={"robots": args.robots})
+    cells = consensus_cells(args)
+    progress = Progress(len(cells) * len(args.seeds), base.learner.rounds)
+    finals: dict[tuple, dict[int, float]] = {}
+    sent: dict[tuple, dict[int, float]] = {}
+    curves: dict[tuple, list] = {}
+    byte_curves: dict[tuple, list] = {}
+    scored: dict[tuple, list[dict[str, float]]] = {}
+    rows = []
+    try:
+        for seed in args.seeds:
+            for cell in cells:
+                cons, link, every, comp = cell
+                learner = base.learner.model_copy(update={
+                    "consensus": cons, "exchange_every": every, "compression": comp,
+                    "round_wait_s": args.round_wait if link < 1 else 0.0})
+                faults = base.faults.model_copy(update={"link_success": link, "seed": seed, "per_round": True})
+                cfg = base.model_copy(update={"seed": seed, "learner": learner, "faults": faults})
+                try:
+                    cfg = RunConfig.model_validate(cfg.model_dump())  # the cell's settings, checked together
+                except Exception as exc:
+                    raise ConfigError(f"{cell_name(*cell)}: {exc}") from None
+                run_dir = run_up(cfg, out / "runs" / f"{cell_name(*cell)}-seed{seed}", progress, f"{cell_name(*cell)} seed {seed}")
+                metrics, wire = read_metrics(run_dir), read_bytes(run_dir)
+                final = float(np.mean([m[-1][1] for m in metrics.values()]))
+                per_learner = float(np.mean([b[-1][1] for b in wire.values()]))
+                finals.setdefault(cell, {})[seed] = final
+                sent.setdefault(cell, {})[seed] = per_learner
+                curves.setdefault(cell, []).append(metrics)
+                byte_curves.setdefault(cell, []).append(wire)
+                sc = mean_scores(score_run(run_dir)) if base.learner.model == "bnn" else {k: float("nan") for k in SCORE_KEYS}
+                scored.setdefault(cell, []).append(sc)
+                rows.append([cons, link, every, comp, seed, final, per_learner] + [sc[k] for k in SCORE_KEYS])
+    finally:
+        progress.close()
+    write_csv(out / "consensus_runs.csv", ["consensus", "link_success", "exchange_every", "compression", "seed",
+                                           "final_val_bce_mean_over_agents", "bytes_sent_per_learner", *SCORE_KEYS], rows)
+    consensus_figures(cells, curves, byte_curves, out)
+    lines = consensus_report(args, base, cells, finals, sent, scored)
+    (out / "report.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+def consensus_figures(cells, curves, byte_curves, out: Path) -> None:
+    """val_bce against round (a panel per link success and exchange interval, a line per
+    consensus rule) and against bytes sent per learner (every run of the grid)."""
+    plt = _plt()
+    links = sorted({c[1] for c in cells if c[3] == "none"}, reverse=True)
+    everys = sorted({c[2] for c in cells if c[3] == "none"})
+    if links:
+        fig, axes = plt.subplots(len(links), len(everys), figsize=(4.6 * len(everys), 3.2 * len(links)), squeeze=False,
+                                 sharey=True, constrained_layout=True)
+        for cell in cells:
+            cons, link, every, comp = cell
+            if comp != "none":
+                continue
+            ax = axes[links.index(link), everys.index(every)]
+            rounds, values = stack_curves(curves[cell])
+            if values.size:
+                ax.plot(rounds, values.mean(0), label=cons)
+                ax.fill_between(rounds, values.min(0), values.max(0), alpha=0.15)
+            ax.set_title(f"link success {link:.0%}, exchange every {every}", fontsize=9)
+            ax.set_yscale("log")
+            ax.grid(alpha=0.3)
+        for ax in axes[-1]:
+            ax.set_xlabel("round")
+        for ax in axes[:, 0]:
+            ax.set_ylabel("validation BCE")
+        axes[0, 0].legend()
+        fig.savefig(out / "consensus_curves.png", dpi=110)
+        plt.close(fig)
+    fig, ax = plt.subplots(figsize=(7.5, 4.5), constrained_layout=True)
+    for cell in cells:
+        xs, ys = [], []
+        for metrics, wire in zip(curves[cell], byte_curves[cell]):
+            for robot, rows in metrics.items():
+                by_round = dict(wire[robot])
+                xs.append([by_round[k] / 1e6 for k, _ in rows])
+                ys.append([v for _, v in rows])
+        n = min(len(x) for x in xs)
+        ax.plot(np.mean([x[:n] for x in xs], 0), np.mean([y[:n] for y in ys], 0), label=cell_name(*cell), lw=1)
+    ax.set_xscale("symlog", linthresh=0.1)
+    ax.set_yscale("log")
+    ax.set_xlabel("MB sent per learner")
+    ax.set_ylabel("validation BCE")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, ncol=2)
+    fig.savefig(out / "consensus_bytes.png", dpi=110)
+    plt.close(fig)
+
+
+def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list[str]:
+    seeds = args.seeds
+
+    def mean(cell):
+        return float(np.mean([finals[cell][s] for s in seeds]))
+
+    lines = [f"# Consensus under poor links, and compressed States: preset {base.preset}", "",
+             f"{base.robots} agents, model {base.learner.model} {base.learner.model_shape}, DiNNO over a "
+             f"{base.learner.graph} graph, {base.learner.rounds} rounds, seeds {', '.join(map(str, seeds))}, transport "
+             f"{base.learner.transport}. Poor links: each link is up for a round, both ways, with the link success "
+             f"probability (drawn per link and round: the messages of a round that is down are lost, resends "
+             f"included); below 100% a round waits at most {args.round_wait:g} s for messages.", "",
+             "![val_bce against round](consensus_curves.png)", "", "![val_bce against bytes sent](consensus_bytes.png)", "",
+             "| consensus | link success | exchange every | compression | final val_bce (mean over agents, then seeds) "
+             "| spread over seeds | MB sent per learner |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for cell in cells:
+        v = [finals[cell][s] for s in seeds]
+        lines.append(f"| {cell[0]} | {cell[1]:.0%} | {cell[2]} | {cell[3]} | {fmt(mean(cell))} | {fmt(min(v))} to "
+                     f"{fmt(max(v))} | {np.mean([sent[cell][s] for s in seeds]) / 1e6:.2f} |")
+    comparisons = []
+    for cell in cells:
+        cons, link, every, comp = cell
+        if cons != "sigma" or comp != "none":
+            continue
+        for other in ("dinno", "ramen"):
+            ref = (other, link, every, comp)
+            if ref in finals:
+                wins = sum(finals[cell][s] < finals[ref][s] for s in seeds)
+                diff = 100 * (mean(cell) - mean(ref)) / mean(ref)
+                comparisons.append(f"- link {link:.0%}, every {every}: sigma against {other}: {diff:+.1f}% "
+                                   f"(lower on {wins} of {len(seeds)} seeds)")
+    if comparisons:
+        lines += ["", "sigma's final val_bce against the other rules (negative: lower):", ""] + comparisons
+    packed = [c for c in cells if c[3] != "none" and (c[0], 1.0, 1, "none") in finals]
+    if packed:
+        lines += ["", "| compression | consensus | bytes against float32 | final val_bce against float32 |",
+                  "| --- | --- | --- | --- |"]
+        for cell in packed:
+            ref = (cell[0], 1.0, 1, "none")
+            ratio = np.mean([sent[ref][s] for s in seeds]) / np.mean([sent[cell][s] for s in seeds])
+            lines.append(f"| {cell[3]} | {cell[0]} | {ratio:.1f}x fewer | {100 * (mean(cell) - mean(ref)) / mean(ref):+.1f}% |")
+    if base.learner.model == "bnn":
+        lines += ["", "Uncertainty scores, mean over agents and seeds:", ""]
+        lines += scores_table([(cell_name(*c), {k: float(np.nanmean([x[k] for x in scored[c]])) for k in SCORE_KEYS})
+                               for c in cells])
+    lines += ["", f"Command: `{' '.join(sys.argv)}`", ""]
+    return lines
+
+
 def score(args: argparse.Namespace) -> int:
     """Print the scores of a finished run's maps and write them, with reliability diagrams, to
     ``--out`` (default RUN_DIR/scores; an earlier scores folder is moved aside, not overwritten)."""
@@ -475,7 +652,8 @@ def add_parser(sub) -> None:
                        description=__doc__.split("\n\n")[0])
     exp = p.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     for name, text in (("kl-sweep", "One isolated agent, one run per kl_weight (the paper's Figure 6)."),
-                       ("regularization", "7 agents, the three regularisation strategies (the paper's Figures 7 and 8).")):
+                       ("regularization", "7 agents, the three regularisation strategies (the paper's Figures 7 and 8)."),
+                       ("consensus", "7 agents: consensus rules x link success x exchange interval, and compressed States.")):
         e = exp.add_parser(name, help=text, description=text, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
         e.add_argument("--out", type=Path, required=True, help="directory for the runs, figures, CSV and report.md")
         e.add_argument("--preset", choices=list(PRESETS), default=DEFAULT_PRESET, help="size: smoke, demo, paper (GPU)")
@@ -490,8 +668,21 @@ def add_parser(sub) -> None:
             e.add_argument("--rooms", type=int, default=2, help="rooms the agent's path visits (the rest stays unseen)")
         else:
             e.add_argument("--robots", type=int, default=7, help="agents")
-            e.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds (plan, paths and initialisation)")
+            e.add_argument("--seeds", type=int, nargs="+", default=[0, 1] if name == "regularization" else [0, 1, 2],
+                           help="seeds (plan, paths, initialisation and lost messages)")
+        if name == "regularization":
             e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES), help="strategies to run")
+        if name == "consensus":
+            e.add_argument("--consensus", nargs="+", choices=CONSENSUS, default=list(CONSENSUS), help="consensus rules")
+            e.add_argument("--link-success", type=float, nargs="+", default=[1.0, 0.3, 0.05],
+                           help="probabilities that a message reaches a neighbour")
+            e.add_argument("--exchange-every", type=int, nargs="+", default=[1, 10], help="exchange intervals (rounds)")
+            e.add_argument("--compression", nargs="+", choices=COMPRESSIONS, default=list(COMPRESSIONS),
+                           help="State encodings, each run over perfect links exchanging every round")
+            e.add_argument("--compression-consensus", nargs="+", choices=CONSENSUS, default=["dinno"],
+                           help="consensus rules the compression runs use")
+            e.add_argument("--round-wait", type=float, default=0.3,
+                           help="below 100%% link success, the most a round waits for messages (learner.round_wait_s)")
     s = exp.add_parser("score", help="Uncertainty scores of a finished bnn run's maps.",
                        description="Uncertainty scores of a finished bnn run's maps.")
     s.add_argument("run_dir", type=Path, help="the run directory")
@@ -506,6 +697,8 @@ def main(args: argparse.Namespace) -> int:
             return kl_sweep(args)
         if args.experiment == "regularization":
             return regularization(args)
+        if args.experiment == "consensus":
+            return consensus(args)
         return score(args)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)

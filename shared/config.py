@@ -201,8 +201,9 @@ class LearnerSettings(Section):
         0.05, gt=0, le=1, description="sigma: a node's pull on a parameter stays within [this, 2 - this] x DiNNO's")
     exchange_every: int = Field(1, ge=1, description="exchange States every this many rounds; the rounds between train "
                                                      "against the neighbours' last States (rounds must be a multiple)")
-    stale_rounds: int = Field(20, ge=0, description="keep pulling towards a neighbour's newest State for this many rounds "
-                                                   "when no newer one comes (lost messages; at least exchange_every)")
+    stale_rounds: int = Field(0, ge=0, description="keep pulling towards a neighbour's newest State for this many rounds "
+                                                  "when no newer one comes (0: the rounds it was meant for only, i.e. "
+                                                  "exchange_every)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
     compression: Literal["none", "f16", "bf16", "topk"] = Field(
@@ -228,6 +229,9 @@ class LearnerSettings(Section):
                              "posterior; ramen works with either)")
         if self.consensus != "dinno" and self.algorithm != "dinno":
             raise ValueError(f"consensus {self.consensus} weighs DiNNO's consensus: it needs algorithm dinno")
+        if self.graph == "disk" and self.data == "online" and self.round_wait_s == 0:
+            raise ValueError("a disk graph with online data changes while the robots drive: set round_wait_s > 0 (a "
+                             "neighbour out of range sends nothing the round could wait for)")
         if self.rounds % self.exchange_every:
             raise ValueError(f"rounds ({self.rounds}) must be a multiple of exchange_every ({self.exchange_every})")
         return self
@@ -273,6 +277,8 @@ class FaultSettings(Section):
     delay_s: float = Field(0.0, ge=0, description="extra delay of each message, uniform in [0, delay_s] (reorders them)")
     links: list[list[int]] = Field(default_factory=list, description="the faulty links as [sender, receiver] pairs; empty: every link")
     seed: int = Field(0, ge=0, description="seed of the fault draws")
+    per_round: bool = Field(False, description="draw link_success once per link and round, for both directions and "
+                                               "every message of the round (a radio link up or down), not per message")
 
 
 class UpSettings(Section):

@@ -251,7 +251,10 @@ class State(Message):
     - ``topk``: a sparse update of the sender's vector as its receivers hold it: ``params`` the
       values (``<f4``) to add at ``indices`` (``<u4``, strictly increasing, below ``size``) to
       the vector of the sender's State numbered ``base``; this State is numbered ``seq``. An
-      ``f32`` State with a ``seq`` starts such a chain again (a key frame)."""
+      ``f32`` State with a ``seq`` starts such a chain again (a key frame).
+
+    ``position`` [x, y] (m), where the sender's robot is, comes with a dynamic disk graph
+    (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it."""
 
     KIND: ClassVar[str] = "State"
     v: Literal[2] = SCHEMA_VERSION
@@ -262,6 +265,7 @@ class State(Message):
     indices: Tensor | None = None
     seq: Annotated[int, Field(ge=0)] | None = None
     base: Annotated[int, Field(ge=0)] | None = None
+    position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)] | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
@@ -290,8 +294,8 @@ class State(Message):
 
     @property
     def plain(self) -> bool:
-        """Whether ``params`` is the whole vector as float32 and nothing else is needed to read it."""
-        return self.encoding == "f32" and self.seq is None
+        """Whether ``params`` is the whole vector as float32 and nothing else comes with it."""
+        return self.encoding == "f32" and self.seq is None and self.position is None
 
 
 class RoundComplete(Message):

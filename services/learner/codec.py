@@ -7,12 +7,17 @@
   see training rounds whatever E is;
 - compresses States (``learner.compression``, :mod:`~swarmmap.shared.compression`) and rebuilds
   the vectors of the States it receives, whatever encoding each sender chose. It sits outside
-  the fault layer, so a State the harness loses is lost to the rebuilding too.
+  the fault layer, so a State the harness loses is lost to the rebuilding too;
+- on a dynamic disk graph (``radius``), stamps each State with its robot's position and ignores
+  the messages of neighbours farther than ``radius`` (their link is out of range: a round with
+  ``learner.round_wait_s`` goes on without them).
 """
 
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -26,9 +31,13 @@ log = logging.getLogger("learner")
 class StateCodec:
     """One node's States, encoded and numbered for the wire, over ``inner``."""
 
-    def __init__(self, inner: Transport, node: int, compressor: Compressor | None = None, every: int = 1):
+    def __init__(self, inner: Transport, node: int, compressor: Compressor | None = None, every: int = 1,
+                 radius: float | None = None, position: Callable[[], tuple[float, float] | None] | None = None):
         self.inner, self.node, self.every = inner, node, every
-        self.compressor = compressor if compressor is not None and compressor.mode != "none" else None
+        self.compressor = compressor if compressor is not None else Compressor("none")
+        self.radius, self.position = radius, position
+        self.out_of_range: dict[int, bool] = {}  # per sender: was its newest State from out of range
+        self.ignored = 0  # messages from neighbours out of range
         self.decompressor = Decompressor()
         self.cached: tuple[int, int, dict] | None = None  # (round, compressor seq, fields) of the newest State sent
         self.logged: set[tuple[str, int]] = set()
@@ -36,10 +45,11 @@ class StateCodec:
 
     def send_state(self, round: int, params: np.ndarray) -> None:
         wire = round * self.every
-        if self.compressor is None:
-            self.inner.send_state(wire, params)
-            return
+        where = self.position() if self.position is not None else None
         c = self.compressor
+        if c.mode == "none" and where is None:
+            self.inner.send_state(wire, params)  # the fast path: the frame the node wrote its parameters into
+            return
         if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
             fields = self.cached[2]  # the same State again: the same bytes (receivers ignore duplicates)
         else:
@@ -47,7 +57,21 @@ class StateCodec:
             # starts the replicas again for whoever missed what came before; the next ones add to it.
             fields = c.fields(params, keyframe=self.cached is not None and round < self.cached[0])
             self.cached = (round, c.seq, fields)
+        if where is not None:
+            fields = {**fields, "position": [float(where[0]), float(where[1])]}
         self.inner.send_fields(wire, fields)
+
+    def in_range(self, env: Envelope) -> bool:
+        """Whether a message comes from within ``radius`` (a State by its position; a RoundComplete
+        by its sender's newest State). Without positions to compare, it does."""
+        if isinstance(env.params, State) and env.params.position is not None:
+            here = self.position() if self.position is not None else None
+            far = here is not None and math.dist(here, env.params.position) > self.radius
+            self.out_of_range[env.sender] = far
+            if far and self.decompressor.replicas.get(env.sender) is not None and env.params.encoding == "topk":
+                self.decompressor.vector(env.params)  # a topk chain is followed even out of range
+            return not far
+        return not self.out_of_range.get(env.sender, False)
 
     def send_round_complete(self, round: int) -> None:
         self.inner.send_round_complete(round * self.every)
@@ -70,6 +94,9 @@ class StateCodec:
                                                 f"round (every {self.every}): does it run with another learner.exchange_every?")
             return None
         params = env.params
+        if self.radius is not None and not self.in_range(env):
+            self.ignored += 1
+            return None
         if isinstance(params, State):
             params = self.decompressor.vector(params)
             if params is None:

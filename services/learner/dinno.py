@@ -273,7 +273,7 @@ class DinnoNode(LocalNode):
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """One DiNNO round for this node given neighbours' States of round ``k`` (an exchange
         round): a dual step per link whose State came, then the primal steps against every
-        neighbour whose State is recent enough (``stale_rounds``)."""
+        neighbour whose newest State is recent enough (``stale_rounds``; 0: this round's only)."""
         n = self.param_count
         st = torch.as_tensor(state_i, device=self.device)
         th_i = st[:n]
@@ -281,7 +281,7 @@ class DinnoNode(LocalNode):
         if self.counts is not None:
             self.counts = st[n:].clone()
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
-        if peers:
+        if peers:  # a dual step per link heard from this round (as UDON: never against an outdated State)
             stj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
             thj, cj = stj[:, :n], (stj[:, n:] if self.counts is not None else None)
             z, a = self.targets(th_i, thj, cj)
@@ -305,11 +305,16 @@ class DinnoNode(LocalNode):
         self._primal(k)
         return self.state()
 
+    def forget_stale(self, k: int) -> None:
+        """Drop the neighbours' States that arrived ``keep_for`` rounds or more before round ``k``
+        (a neighbour gone, or a link that has stayed down)."""
+        for j in [j for j, (arrived, _, _) in self.known.items() if k - arrived >= self.keep_for]:
+            del self.known[j]
+
     def _primal(self, k: int) -> None:
         """``primal_iterations`` optimizer steps on the loss plus the consensus terms of the
         neighbours whose newest State is at most ``keep_for`` rounds old."""
-        for j in [j for j, (arrived, _, _) in self.known.items() if k - arrived >= self.keep_for]:
-            del self.known[j]  # too old: a neighbour gone, or a link that has stayed down
+        self.forget_stale(k)
         th_reg = a = duals = None
         if self.known:
             ids = sorted(self.known)

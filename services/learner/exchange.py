@@ -154,9 +154,12 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     Poor links (``round_wait`` > 0): a node that has been ``round_wait`` seconds in a round runs
     its update with the neighbours' States that have arrived (none, if none has) and finishes the
     round without waiting for the RoundCompletes still missing: a round waits at most
-    ``round_wait`` seconds for messages. The neighbours it went on without are missing from that
-    round only (``stats.missed``); nobody is left out for it. Where every message arrives in
-    time, the rounds are Algorithm 1's.
+    ``round_wait`` seconds for messages. The team's rounds then drift apart: a neighbour's State
+    of another round (behind, or further ahead than ROUNDS_AHEAD) is kept as its newest word and
+    given to the update of a round that got none of its own from it; nothing is replayed, and
+    such States are not refused. The neighbours a round went on without are missing from it only
+    (``stats.missed``); nobody is left out for it. Where every message arrives in time, the
+    rounds are Algorithm 1's.
     """
     stats = stats if stats is not None else ExchangeStats()
     buf = _Rounds()
@@ -174,6 +177,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     history: dict[int, np.ndarray] = {}  # the States of the last keep_rounds rounds, for neighbours that replay them
     replayed: dict[tuple[int, int], float] = {}
     newest: dict[int, int] = {}  # newest round of a State from each neighbour (forgotten when it leaves: it restarts)
+    late: dict[int, tuple[int, np.ndarray]] = {}  # poor links: each neighbour's newest State of another round
 
     def send_state() -> None:
         t0 = time.perf_counter()
@@ -231,9 +235,14 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             timed_out = round_wait > 0 and time.monotonic() - round_started >= round_wait
             if not updated and (((active or not neighbours) and active <= peers.keys()) or timed_out):
                 busy_since = time.monotonic()
-                here = sorted(active & peers.keys())
-                stats.missed += len(active) - len(here)
-                state = node_update(rnd, state, {j: peers[j] for j in here})
+                used = {j: peers[j] for j in active & peers.keys()}
+                for j in list(late):
+                    if j in used and late[j][0] <= rnd:
+                        del late[j]  # older than the State of this round
+                    elif j in active and j not in used:
+                        used[j] = late.pop(j)[1]  # this round's did not come: the newest of another round
+                stats.missed += len(active) - len(used)
+                state = node_update(rnd, state, dict(sorted(used.items())))
                 busy = time.monotonic() - busy_since
                 for j in heard:  # silence counts while this node listens, not while it computes
                     heard[j] += busy  # (what the neighbours sent meanwhile waits in its inbox)
@@ -289,11 +298,20 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             behind = msg.kind == "state" and msg.round >= newest.get(j, -1)  # not a replay of its own old States
             if msg.kind == "state":
                 newest[j] = max(newest.get(j, -1), msg.round)
+            if round_wait > 0 and (msg.round < rnd or msg.round > rnd + ROUNDS_AHEAD) and not joining:
+                # Poor links: the team's rounds drift apart. A State of another round is the neighbour's
+                # newest word all the same: kept (the newest) for a round that gets none from it. Nothing
+                # is replayed: a neighbour behind catches up by itself, its rounds timing out.
+                heard[j] = now
+                if msg.kind == "state" and msg.round >= late.get(j, (-1, None))[0]:
+                    why = check_state(msg.params, state) if check_state is not None else None
+                    if why is None:
+                        late[j] = (msg.round, msg.params)
+                    else:
+                        refuse(stats, node_id, msg, why, "implausible")
+                continue
             if msg.round < rnd:  # a neighbour behind (restarted): send it the States it needs again
-                # (On poor links, a neighbour a round or two behind is one still waiting out its round, not one
-                # that restarted: it catches up by itself.)
-                lagging = round_wait > 0 and rnd - msg.round <= ROUNDS_AHEAD
-                if behind and not lagging and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
+                if behind and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
                     replayed[(j, msg.round)] = now
                     log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", node_id, j,
                              msg.round, msg.round, rnd)

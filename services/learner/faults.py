@@ -2,7 +2,8 @@
 
 :class:`FaultyTransport` wraps any :class:`~swarmmap.services.learner.exchange.Transport`
 (Zenoh's or the in-memory one) and applies ``faults`` (``FaultSettings``) to the messages that
-reach this node from its neighbours, per link ``[sender, receiver]``. A learner uses it when the
+reach this node from its neighbours, per link ``[sender, receiver]``: each message is lost on
+its own, or (``per_round``) a link is up or down for a whole round, both ways. A learner uses it when the
 run's ``faults`` section asks for any (tests, ``bench/``, experiments on poor links); by default
 it is not there at all.
 """
@@ -53,7 +54,8 @@ class FaultyTransport:
         if not self._faulty(msg.sender):
             heapq.heappush(self.pending, (0.0, next(self.order), msg))
             return
-        if self.rng.random() >= self.f.link_success:
+        up = self._link_up(msg) if self.f.per_round else self.rng.random() < self.f.link_success
+        if not up:
             self.dropped += 1
             return
         copies = 2 if self.rng.random() < self.f.duplicate else 1
@@ -61,6 +63,13 @@ class FaultyTransport:
         for _ in range(copies):
             due = time.monotonic() + (self.rng.uniform(0, self.f.delay_s) if self.f.delay_s > 0 else 0.0)
             heapq.heappush(self.pending, (due, next(self.order), msg))
+
+    def _link_up(self, msg: Envelope) -> bool:
+        """Whether the link between ``msg.sender`` and this node is up in the message's round: one
+        draw per link and round, the same at both ends (a radio link down for a round carries
+        nothing either way, resends included)."""
+        a, b = sorted((msg.sender, self.node))
+        return np.random.default_rng([self.f.seed, a, b, msg.round]).random() < self.f.link_success
 
     def receive(self, timeout: float) -> Envelope | None:
         deadline = time.monotonic() + timeout

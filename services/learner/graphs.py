@@ -2,8 +2,9 @@
 
 ``complete`` and ``ring`` need nothing; ``file`` reads an edge list (YAML/JSON: a list of
 [i, j] pairs, or a mapping ``{edges: [[i, j], ...]}``); ``disk`` joins robots within
-``comm_radius_m`` of each other (DiNNO's dynamic disk graph), from the positions the world
-reports. Every learner computes the same graph from the same inputs, so neighbour sets are
+``comm_radius_m`` of each other, from the positions where the world says the robots end their
+traversal (offline data), or while they drive (online data: DiNNO's dynamic disk graph, each
+State carrying its robot's position). Every learner computes the same graph from the same inputs, so neighbour sets are
 symmetric, as Algorithm 1 needs. A robot with no neighbour trains alone.
 """
 
@@ -77,8 +78,17 @@ def metropolis_weights(graph: dict[int, set[int]], node: int) -> dict[int, float
     return row
 
 
+def dynamic_graph(settings) -> bool:
+    """Whether the run's disk graph changes while the robots drive (graph disk with online data):
+    every robot may then become every other's neighbour, and each message's range decides."""
+    return settings.graph == "disk" and settings.data == "online"
+
+
 def run_graph(settings, robots: int, positions: np.ndarray | None) -> dict[int, set[int]]:
     """The communication graph a run's LearnerSettings describe: none for the baselines that do
-    not communicate (individual, centralized), else ``settings.graph``."""
+    not communicate (individual, centralized); complete for a dynamic disk graph, whose links
+    come and go with the robots' distance (``StateCodec``); else ``settings.graph``."""
     kind = "none" if settings.algorithm in ("individual", "centralized") else settings.graph
+    if kind == "disk" and dynamic_graph(settings):
+        kind = "complete"
     return neighbour_sets(kind, robots, graph_file=settings.graph_file, radius=settings.comm_radius_m, positions=positions)

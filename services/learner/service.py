@@ -31,7 +31,7 @@ from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce, warm_up
 from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, MemoryTransport, PeerFailure, implausible, run_algorithm1
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
-from swarmmap.services.learner.graphs import GraphError, metropolis_weights, run_graph
+from swarmmap.services.learner.graphs import GraphError, dynamic_graph, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bnn import BayesNet, predict_mean_std
@@ -67,6 +67,7 @@ class Collector:
         self.done = threading.Event()
         self.first = threading.Event()
         self.refused = 0  # Samples after the one marked last
+        self.position: tuple[float, float] | None = None  # where the robot was at its newest scan
         self._lock = threading.Lock()
 
     def add(self, msg: Samples) -> None:
@@ -79,6 +80,7 @@ class Collector:
                 return
             self.points.append(msg.points.numpy())
             self.labels.append(msg.labels.numpy())
+            self.position = (float(msg.position[0]), float(msg.position[1]))
             if msg.last:
                 self.done.set()
         self.first.set()
@@ -302,6 +304,10 @@ class RobotLearner:
                                    keep_rounds=-(-s.checkpoint_every // s.exchange_every) + 2, round_wait=s.round_wait_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
+        if self.stats.missed or getattr(transport, "ignored", 0) or getattr(transport, "unusable", 0):
+            log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
+                     "from neighbours out of range ignored; %d State(s) that could not be rebuilt", robot,
+                     self.stats.missed, getattr(transport, "ignored", 0), getattr(transport, "unusable", 0))
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
         self.final_state = final
         self.finish(final, self.stats.final_peers)
@@ -354,7 +360,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 hub = MemoryHub({r.robot: r.neighbours for r in learners}, run=cfg.run_id)  # through the wire codec
                 for r in learners:
                     r.wire = hub.transport(r.robot)
-                run_all(learners, {r.robot: links(r.wire, r.robot, cfg) for r in learners}, stop)
+                run_all(learners, {r.robot: links(r.wire, r) for r in learners}, stop)
             else:
                 # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
@@ -363,7 +369,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 me.node.new_state = transport.new_state  # States written straight into their payloads
                 if any_faults(cfg.faults):
                     log.warning("robot %d: injecting faults on its incoming links: %s", me.robot, cfg.faults.model_dump())
-                transport = links(transport, me.robot, cfg)
+                transport = links(transport, me)
                 bus.announce(me.robot, service="exchange")
                 missing = bus.wait_alive("exchange", {str(j) for j in me.neighbours}, s.peer_timeout_s, stop)
                 if me.neighbours and missing == {str(j) for j in me.neighbours} and not stop.is_set():
@@ -390,13 +396,17 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     return 0
 
 
-def links(transport, robot: int, cfg: RunConfig) -> StateCodec:
+def links(transport, learner: RobotLearner) -> StateCodec:
     """A node's links as its settings ask: faults injected where the run's ``faults`` say, States
-    encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``)."""
-    s = cfg.learner
+    encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``),
+    and on a dynamic disk graph limited to the neighbours within ``comm_radius_m``."""
+    cfg, robot, s = learner.cfg, learner.robot, learner.s
     if any_faults(cfg.faults):
         transport = FaultyTransport(transport, robot, cfg.faults)
-    return StateCodec(transport, robot, Compressor(s.compression, s.topk_density, s.keyframe_every), s.exchange_every)
+    dynamic = dynamic_graph(s)
+    return StateCodec(transport, robot, Compressor(s.compression, s.topk_density, s.keyframe_every), s.exchange_every,
+                      radius=s.comm_radius_m if dynamic else None,
+                      position=(lambda: learner.collector.position) if dynamic else None)
 
 
 def train_centralized(learners: list[RobotLearner], stop: threading.Event) -> None:

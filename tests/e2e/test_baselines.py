@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 
 import pytest
@@ -54,3 +55,20 @@ def test_online_training_starts_while_the_robots_drive(tmp_path):
     traversal_end = next(line for line in world if "traversal done" in line)[:23]
     first_round = next(line for line in learner if "round 0:" in line)[:23]
     assert first_round < traversal_end, "online training should begin before the traversal ends"
+
+
+@pytest.mark.faults
+def test_a_dynamic_disk_graph_links_robots_only_while_in_range(tmp_path):
+    """DiNNO's setting over Zenoh: training while the robots drive, each hearing only the robots
+    within comm_radius_m at the time (States carry positions). In the smoke plan at 3.5 m the
+    robots are sometimes in range and sometimes not: every learner finishes, some rounds use a
+    neighbour's State, and messages from out of range are ignored rather than waited for."""
+    learners = up(tmp_path / "o", "--set", "learner.data=online", "--set", "learner.window_scans=30",
+                  "--set", "world.time_scale=4", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=3.5",
+                  "--set", "learner.round_wait_s=0.3")
+    assert all(v["finished"] for v in learners.values())
+    rows = list(csv.DictReader((tmp_path / "o" / "metrics.csv").open()))
+    assert any(float(r["consensus_error"]) > 0 for r in rows), "no round ever heard a neighbour in range"
+    logs = "".join((tmp_path / "o" / "logs" / f"learner-{i}.log").read_text() for i in range(3))
+    ignored = [int(x) for x in re.findall(r"(\d+) message\(s\) from neighbours out of range ignored", logs)]
+    assert ignored and max(ignored) > 0, logs[-2000:]

@@ -151,6 +151,8 @@ def test_sigma_needs_a_bayesian_network_and_dinno():
         LearnerSettings(consensus="ramen", algorithm="dsgd")
     with pytest.raises(ValueError, match="multiple of exchange_every"):
         LearnerSettings(rounds=25, exchange_every=10)
+    with pytest.raises(ValueError, match="round_wait_s > 0"):
+        LearnerSettings(graph="disk", data="online")
 
 
 def test_ramen_weights_follow_ramens_scaling_and_reduce_to_dinno_for_equal_counts():

@@ -117,3 +117,49 @@ def test_round_wait_changes_nothing_where_every_message_arrives():
     for i in COMPLETE3:
         np.testing.assert_allclose(results[i], ref[i], rtol=1e-6)
         assert stats[i].missed == 0
+
+
+def test_a_dynamic_disk_graph_hears_only_the_neighbours_in_range():
+    """Robots 0 and 1 stand 3 m apart, robot 2 is 40 m away (radius 10 m): 0 and 1 exchange,
+    2 trains alone, and the rounds never wait for the links out of range."""
+    where = {0: (0.0, 0.0), 1: (3.0, 0.0), 2: (40.0, 0.0)}
+    hub = MemoryHub(COMPLETE3, run="links")
+    codecs = {i: StateCodec(hub.transport(i), i, radius=10.0, position=lambda i=i: where[i]) for i in COMPLETE3}
+    seen: dict[int, set[int]] = {i: set() for i in COMPLETE3}
+
+    def update(i):
+        def step(k, theta, peers):
+            seen[i] |= set(peers)
+            return mixing_update(i)(k, theta, peers)
+        return step
+
+    init = init_vectors(COMPLETE3, 16)
+    results, stats = {}, {i: ExchangeStats() for i in COMPLETE3}
+
+    def node(i):
+        results[i] = run_algorithm1(i, COMPLETE3[i], 6, init[i], update(i), codecs[i], stats=stats[i], round_wait=0.1,
+                                    resend_after=5, linger=0.2)
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in COMPLETE3]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert seen == {0: {1}, 1: {0}, 2: set()}
+    assert codecs[2].ignored > 0 and codecs[0].ignored > 0
+    assert len(results) == 3 and all(s.left_out == 0 for s in stats.values())
+
+
+def test_a_link_down_for_a_round_is_down_both_ways_and_for_its_resends():
+    """faults.per_round: one draw per link and round, the same at both ends, so a round's
+    messages and their resends are all lost together, and the loss rate is link_success's."""
+    from swarmmap.services.learner.exchange import Envelope
+
+    faults = FaultSettings(link_success=0.3, per_round=True, seed=4)
+    hub = MemoryHub({0: {1}, 1: {0}})
+    a, b = FaultyTransport(hub.transport(0), 0, faults), FaultyTransport(hub.transport(1), 1, faults)
+    up_a = [a._link_up(Envelope("state", 1, r)) for r in range(400)]
+    up_b = [b._link_up(Envelope("state", 0, r)) for r in range(400)]
+    assert up_a == up_b  # both directions of the link agree, round by round
+    assert up_a == [a._link_up(Envelope("complete", 1, r)) for r in range(400)]  # every message of the round
+    assert 0.22 < sum(up_a) / 400 < 0.38
