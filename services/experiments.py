@@ -461,7 +461,7 @@ def regularization(args: argparse.Namespace) -> int:
 
 
 CONSENSUS = ("dinno", "ramen", "sigma")
-COMPRESSIONS = ("none", "f16", "bf16", "topk")
+COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign")
 
 
 def cell_name(consensus: str, link: float, every: int, compression: str) -> str:

@@ -16,6 +16,10 @@ Modes:
   replicas. States are numbered (``seq``) and each update names the one it adds to (``base``):
   a receiver that missed one cannot rebuild the vector and waits for the next key frame
   (:class:`Decompressor` says so). Costs 8 bytes a kept value, plus 4 n / keyframe_every.
+- ``sign``: the same chain, but every value moves every State: the sign of each difference
+  (one bit) times the mean absolute difference of its run of SIGN_CHUNK values (scaled sign
+  compression with error feedback, as in Karimireddy et al. 2019 and CHOCO-SGD). Costs
+  n / 8 + 4 n / 256 bytes (about 28 x fewer than float32), plus the key frames.
 
 One replica serves every neighbour: a State is published once to all of them (Zenoh pub/sub),
 so the differences are against the last States sent to the links, as one.
@@ -28,11 +32,11 @@ import math
 
 import numpy as np
 
-from swarmmap.shared.protocol import State, Tensor
+from swarmmap.shared.protocol import SIGN_CHUNK, State, Tensor
 
 log = logging.getLogger("compression")
 
-COMPRESSIONS = ("none", "f16", "bf16", "topk")
+COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign")
 F16_MAX = float(np.finfo(np.float16).max)
 
 
@@ -86,6 +90,17 @@ class Compressor:
             return {"params": Tensor.of(vec, "<f4"), "seq": self.seq}
         self.since_keyframe += 1
         diff = vec - self.replica
+        if self.mode == "sign":
+            chunks = -(-diff.size // SIGN_CHUNK)
+            padded = np.zeros(chunks * SIGN_CHUNK, np.float32)
+            padded[: diff.size] = np.abs(diff)
+            counts = np.full(chunks, SIGN_CHUNK, np.float32)
+            counts[-1] = diff.size - (chunks - 1) * SIGN_CHUNK
+            scales = (padded.reshape(chunks, SIGN_CHUNK).sum(1) / counts).astype(np.float32)
+            up = diff >= 0
+            self.replica += sign_steps(up, scales)
+            return {"encoding": "sign", "params": Tensor.of(np.packbits(up), "|u1"), "scales": Tensor.of(scales, "<f4"),
+                    "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
         k = min(diff.size, max(1, math.ceil(self.density * diff.size)))
         idx = np.argpartition(np.abs(diff), diff.size - k)[diff.size - k :] if k < diff.size else np.arange(diff.size)
         idx = np.sort(idx).astype(np.uint32)
@@ -93,6 +108,12 @@ class Compressor:
         self.replica[idx] += values
         return {"encoding": "topk", "params": Tensor.of(values, "<f4"), "indices": Tensor.of(idx, "<u4"),
                 "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
+
+
+def sign_steps(up: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """A sign State's step per value: + or - the scale of its run of SIGN_CHUNK values."""
+    step = np.repeat(scales, SIGN_CHUNK)[: up.size]
+    return np.where(up, step, -step).astype(np.float32)
 
 
 class Decompressor:
@@ -121,12 +142,15 @@ class Decompressor:
             return held[1].copy()  # the same State again (a resend)
         if held is None or held[0] != msg.base or held[1].size != msg.size:
             self.broken += 1
-            self.why = (f"topk State {msg.seq} of node {msg.sender} adds to its State {msg.base}, "
+            self.why = (f"{msg.encoding} State {msg.seq} of node {msg.sender} adds to its State {msg.base}, "
                         + ("but none of its key frames has arrived yet" if held is None else f"but the last one here is {held[0]}")
                         + ": waiting for its next key frame")
             return None
         vec = held[1]
-        vec[msg.indices.numpy()] += msg.params.numpy()
+        if msg.encoding == "sign":
+            vec += sign_steps(np.unpackbits(msg.params.numpy(), count=msg.size).astype(bool), msg.scales.numpy())
+        else:
+            vec[msg.indices.numpy()] += msg.params.numpy()
         self.replicas[msg.sender] = (msg.seq, vec)
         return vec.copy()
 

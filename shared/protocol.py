@@ -237,7 +237,8 @@ class Samples(Message):
         return self
 
 
-STATE_ENCODINGS = ("f32", "f16", "bf16", "topk")
+STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign")
+SIGN_CHUNK = 256  # values per scale of a sign State
 
 
 class State(Message):
@@ -252,6 +253,9 @@ class State(Message):
       values (``<f4``) to add at ``indices`` (``<u4``, strictly increasing, below ``size``) to
       the vector of the sender's State numbered ``base``; this State is numbered ``seq``. An
       ``f32`` State with a ``seq`` starts such a chain again (a key frame).
+    - ``sign``: the same chain, dense: ``params`` (``|u1``) packs one bit per value (numpy's
+      packbits, most significant bit first; 1 = add, 0 = subtract) and ``scales`` (``<f4``)
+      holds the step of each run of SIGN_CHUNK values, to add to the State numbered ``base``.
 
     ``position`` [x, y] (m), where the sender's robot is, comes with a dynamic disk graph
     (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it."""
@@ -266,18 +270,30 @@ class State(Message):
     seq: Annotated[int, Field(ge=0)] | None = None
     base: Annotated[int, Field(ge=0)] | None = None
     position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)] | None = None
+    scales: Tensor | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
-        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4"}[self.encoding]
+        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1"}[self.encoding]
         _require(self.params, "params", dtype, 1)
         if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
             raise ValueError("params: non-finite values")
-        if self.encoding != "topk":
-            if self.indices is not None or self.size is not None or self.base is not None:
-                raise ValueError(f"indices, size and base belong to topk States, not {self.encoding}")
+        chained = self.encoding in ("topk", "sign")
+        if not chained:
+            if any(x is not None for x in (self.indices, self.size, self.base, self.scales)):
+                raise ValueError(f"indices, size, base and scales belong to topk and sign States, not {self.encoding}")
             return self
-        if self.indices is None or self.size is None or self.seq is None or self.base is None:
+        if self.size is None or self.seq is None or self.base is None:
+            raise ValueError(f"a {self.encoding} State needs size, seq and base")
+        if self.encoding == "sign":
+            if self.indices is not None or self.scales is None:
+                raise ValueError("a sign State needs scales and no indices")
+            _require(self.scales, "scales", "<f4", 1)
+            if self.params.shape[0] != -(-self.size // 8) or self.scales.shape[0] != -(-self.size // SIGN_CHUNK):
+                raise ValueError(f"a sign State of size {self.size} needs {-(-self.size // 8)} bytes of signs and "
+                                 f"{-(-self.size // SIGN_CHUNK)} scales")
+            return self
+        if self.indices is None or self.scales is not None:
             raise ValueError("a topk State needs indices, size, seq and base")
         _require(self.indices, "indices", "<u4", 1)
         idx = self.indices.numpy()

@@ -109,6 +109,9 @@ class LocalNode:
         self.labels = labels.to(self.device)
         self.s = settings
         self.new_state: Callable[[int], np.ndarray] = lambda n: np.empty(n, np.float32)  # set by a transport
+        # What the neighbours hold of this node's State when it differs from the State itself (topk
+        # compression: the sender's replica); set by the learner.
+        self.public: Callable[[], np.ndarray | None] = lambda: None
         self.lrs = lr_schedule(settings.lr_schedule, settings.lr_start, settings.lr_finish, settings.rounds)
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         self.bayesian = isinstance(model, BayesNet)
@@ -281,12 +284,13 @@ class DinnoNode(LocalNode):
         if self.counts is not None:
             self.counts = st[n:].clone()
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
+        th_i = self.public_params(th_i)
         if peers:  # a dual step per link heard from this round (as UDON: never against an outdated State)
             stj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
             thj, cj = stj[:, :n], (stj[:, n:] if self.counts is not None else None)
             z, a = self.targets(th_i, thj, cj)
             for row, j in enumerate(peers):
-                step = self.rho * (th_i - thj[row]) if a is None else 2 * self.rho * a[row] * (th_i - z[row])
+                step = self.rho * (th_i - thj[row]) if a is None else self.dual_step(th_i, thj[row], z[row], a[row])
                 self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
                 self.known[j] = (k, thj[row], None if cj is None else cj[row])
         self._primal(k)
@@ -305,6 +309,25 @@ class DinnoNode(LocalNode):
         self._primal(k)
         return self.state()
 
+    def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """A link's dual step. ``ramen``: 2 rho a (theta_i - z), RAMEN's 2 W_i W_j / (W_i + W_j)
+        (theta_i - theta_j). ``sigma``: rho a (2 - a) (theta_i - theta_j), the same at both ends of
+        the link up to sign (a_ji = 2 - a_ij), so that the two duals of a link cancel as DiNNO's do;
+        an unbalanced pair would push the whole team off the data's optimum."""
+        if self.consensus == "sigma":
+            return self.rho * a * (2 - a) * (th_i - th_j)
+        return 2 * self.rho * a * (th_i - z)
+
+    def public_params(self, own: torch.Tensor) -> torch.Tensor:
+        """The parameters the consensus terms take for this node: ``own``, or, where its States
+        are compressed with error feedback, the copy its neighbours hold (as CHOCO-SGD): both ends
+        of a link then compute its dual from the same two vectors, so the duals stay balanced,
+        and what compression has not yet carried does not brake the team."""
+        public = self.public()
+        if public is None:
+            return own
+        return torch.from_numpy(np.array(public[: self.param_count], dtype=np.float32)).to(self.device)
+
     def forget_stale(self, k: int) -> None:
         """Drop the neighbours' States that arrived ``keep_for`` rounds or more before round ``k``
         (a neighbour gone, or a link that has stayed down)."""
@@ -320,7 +343,7 @@ class DinnoNode(LocalNode):
             ids = sorted(self.known)
             thj = torch.stack([self.known[j][1] for j in ids])
             cj = torch.stack([self.known[j][2] for j in ids]) if self.counts is not None else None
-            th_i = torch.nn.utils.parameters_to_vector(self.model.parameters()).detach()
+            th_i = self.public_params(torch.nn.utils.parameters_to_vector(self.model.parameters()).detach())
             th_reg, a = self.targets(th_i, thj, cj)
             duals = torch.stack([self.duals[j] for j in ids]).sum(0)  # the links this node hears from
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])

@@ -169,7 +169,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
     returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
     joining = resumed  # may jump ahead to its team's round, until it finishes a round with a neighbour
     round_started = time.monotonic()  # when this node began its current round
-    heard = dict.fromkeys(neighbours, time.monotonic())
+    heard = dict.fromkeys(neighbours, time.monotonic())  # the last message from each neighbour
+    refused_since: dict[int, float] = {}  # per neighbour: its first refused State since it last sent one this node took
     lost_since: dict[int, float] = {}
     alone_since: float | None = None
 
@@ -246,6 +247,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 busy = time.monotonic() - busy_since
                 for j in heard:  # silence counts while this node listens, not while it computes
                     heard[j] += busy  # (what the neighbours sent meanwhile waits in its inbox)
+                    if j in refused_since:
+                        refused_since[j] += busy
                 updated = True
                 send_complete()
                 progressed = True
@@ -269,6 +272,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                                                                             if rejoin_wait else ""))
                 elif now - heard[j] > silent_after:
                     leave_out(j, f"has been silent for {now - heard[j]:.0f} s")
+                elif not updated and now - refused_since.get(j, now) > silent_after:  # it talks, but only in refused States
+                    leave_out(j, f"has sent only States this node refuses for {now - refused_since[j]:.0f} s")
             if neighbours and not active:
                 alone_since = alone_since or now
                 if now - alone_since > peer_timeout:
@@ -307,7 +312,9 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                     why = check_state(msg.params, state) if check_state is not None else None
                     if why is None:
                         late[j] = (msg.round, msg.params)
+                        refused_since.pop(j, None)
                     else:
+                        refused_since.setdefault(j, now)
                         refuse(stats, node_id, msg, why, "implausible")
                 continue
             if msg.round < rnd:  # a neighbour behind (restarted): send it the States it needs again
@@ -340,8 +347,10 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
             stale = (joining and not updated) or left_behind
             why = check_state(msg.params, None if stale else state) if check_state is not None else None
             if why is not None:
+                refused_since.setdefault(j, now)
                 refuse(stats, node_id, msg, why, "implausible")
                 continue
+            refused_since.pop(j, None)
             if jump:  # the team is too far ahead to replay: catch up with it
                 log.info("node %d: neighbour %d is at round %d; catching up from round %d%s", node_id, j, msg.round, rnd,
                          f" (left behind for {now - round_started:.0f} s)" if left_behind else "")

@@ -404,8 +404,10 @@ def links(transport, learner: RobotLearner) -> StateCodec:
     if any_faults(cfg.faults):
         transport = FaultyTransport(transport, robot, cfg.faults)
     dynamic = dynamic_graph(s)
-    return StateCodec(transport, robot, Compressor(s.compression, s.topk_density, s.keyframe_every), s.exchange_every,
-                      radius=s.comm_radius_m if dynamic else None,
+    compressor = Compressor(s.compression, s.topk_density, s.keyframe_every)
+    if s.compression in ("topk", "sign"):
+        learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
+    return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
                       position=(lambda: learner.collector.position) if dynamic else None)
 
 

@@ -187,7 +187,8 @@ def test_ramen_counts_travel_in_the_state_and_grow_with_the_steps():
 
 
 def test_rounds_between_exchanges_pull_towards_the_last_states_and_keep_the_duals():
-    s = LearnerSettings(model_shape=[2, 16, 8, 1], rounds=4, primal_iterations=3, batch_size=256, rho_init=1.0)
+    s = LearnerSettings(model_shape=[2, 16, 8, 1], rounds=4, primal_iterations=3, batch_size=256, rho_init=1.0,
+                        exchange_every=2)
     a = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
     lone = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
     far = a.state().copy() + 0.5

@@ -324,3 +324,41 @@ def test_a_node_busy_computing_longer_than_silent_after_does_not_leave_out_its_n
     ref = reference(graph, rounds, init)
     for i in graph:
         np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
+
+
+def test_a_neighbour_whose_every_state_is_refused_is_left_out_and_the_rounds_go_on(caplog):
+    """A member that keeps talking (States and RoundCompletes, all the time) but whose every
+    State is refused is not waited on forever: after silent_after without a State this node
+    could take, it is left out, named, and the others finish."""
+    from swarmmap.services.learner.exchange import implausible
+
+    graph = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
+    hub = MemoryHub(graph)
+    done = threading.Event()
+
+    def hostile():
+        while not done.is_set():
+            for r in range(8):
+                for q in (0, 1):
+                    hub.queues[q].put(Envelope("state", 2, r, np.zeros(8)))
+                    hub.queues[q].put(Envelope("complete", 2, r))
+            done.wait(0.05)
+
+    init = {i: np.linspace(1, 2, 8) + 0.01 * i for i in (0, 1)}
+    stats, results = {0: ExchangeStats(), 1: ExchangeStats()}, {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], 5, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
+                                    linger=0.2, stats=stats[i], silent_after=1.0, peer_timeout=20,
+                                    check_state=lambda theirs, own: implausible(theirs, own, 0.5))
+
+    threads = [threading.Thread(target=hostile)] + [threading.Thread(target=node, args=(i,)) for i in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads[1:]:
+        t.join(30)
+    done.set()
+    threads[0].join(5)
+    assert set(results) == {0, 1}
+    assert all(s.left_out >= 1 and s.refused["implausible"] >= 1 for s in stats.values())
+    assert "has sent only States this node refuses" in caplog.text
