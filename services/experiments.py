@@ -55,21 +55,12 @@ SCORE_KEYS = ("nll", "ece", "accuracy", "auroc_error", "auroc_unobserved", "std_
 # ----------------------------------------------------------------------------- one run
 
 
-def read_metrics(run_dir: Path) -> dict[int, list[tuple[int, float]]]:
-    """Per robot, (round, val_bce) in round order from ``metrics.csv``."""
+def read_metrics(run_dir: Path, column: str = "val_bce") -> dict[int, list[tuple[int, float]]]:
+    """Per robot, (round, ``column``) in round order from ``metrics.csv``."""
     out: dict[int, dict[int, float]] = {}
     with (run_dir / "metrics.csv").open() as f:
         for row in csv.DictReader(f):
-            out.setdefault(int(row["robot"]), {})[int(row["round"])] = float(row["val_bce"])
-    return {r: sorted(v.items()) for r, v in sorted(out.items())}
-
-
-def read_bytes(run_dir: Path) -> dict[int, list[tuple[int, int]]]:
-    """Per robot, (round, bytes sent on Algorithm 1's links so far) in round order."""
-    out: dict[int, dict[int, int]] = {}
-    with (run_dir / "metrics.csv").open() as f:
-        for row in csv.DictReader(f):
-            out.setdefault(int(row["robot"]), {})[int(row["round"])] = int(row["bytes_sent"])
+            out.setdefault(int(row["robot"]), {})[int(row["round"])] = float(row[column])
     return {r: sorted(v.items()) for r, v in sorted(out.items())}
 
 
@@ -504,7 +495,7 @@ def consensus(args: argparse.Namespace) -> int:
                 except Exception as exc:
                     raise ConfigError(f"{cell_name(*cell)}: {exc}") from None
                 run_dir = run_up(cfg, out / "runs" / f"{cell_name(*cell)}-seed{seed}", progress, f"{cell_name(*cell)} seed {seed}")
-                metrics, wire = read_metrics(run_dir), read_bytes(run_dir)
+                metrics, wire = read_metrics(run_dir), read_metrics(run_dir, "bytes_sent")
                 final = float(np.mean([m[-1][1] for m in metrics.values()]))
                 per_learner = float(np.mean([b[-1][1] for b in wire.values()]))
                 finals.setdefault(cell, {})[seed] = final

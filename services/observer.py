@@ -212,7 +212,7 @@ class Observer:
                                         encoding="f32", size=None, indices=None, seq=None, base=None)
         before = self.seen_round.get(msg.sender, -1)
         self.seen_round[msg.sender] = max(before, msg.round)
-        if msg.round // self.map_every <= before // self.map_every and msg.round != self.cfg.learner.rounds:
+        if before < msg.round != self.cfg.learner.rounds and msg.round // self.map_every <= before // self.map_every:
             return  # no map round since the last State: mapping every State would take the CPU the learners need
         with self.lock:
             self.states_in += 1

@@ -63,7 +63,7 @@ def test_a_dynamic_disk_graph_links_robots_only_while_in_range(tmp_path):
     within comm_radius_m at the time (States carry positions). In the smoke plan at 3.5 m the
     robots are sometimes in range and sometimes not: every learner finishes, some rounds use a
     neighbour's State, and messages from out of range are ignored rather than waited for."""
-    learners = up(tmp_path / "o", "--set", "learner.data=online", "--set", "learner.window_scans=30",
+    learners = up(tmp_path / "o", "--rounds", "20", "--set", "learner.data=online", "--set", "learner.window_scans=30",
                   "--set", "world.time_scale=4", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=3.5",
                   "--set", "learner.round_wait_s=0.3")
     assert all(v["finished"] for v in learners.values())

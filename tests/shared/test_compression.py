@@ -70,22 +70,14 @@ def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mod
         assert np.abs(back - v).max() < gap and np.abs(back - v).mean() < 2e-3
 
 
-def test_sign_sends_a_twentieth_of_the_bytes():
-    c = Compressor("sign", keyframe_every=100)
+@pytest.mark.parametrize("mode, density, ratio", [("topk", 0.04, 10), ("sign", 0.01, 20)])
+def test_chained_modes_send_a_tenth_of_the_bytes_or_less(mode, density, ratio):
+    c = Compressor(mode, density=density, keyframe_every=100)
     plain = compressed = 0
     for v in vectors(steps=100):
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
         compressed += wire(c.fields(v))[1]
-    assert plain / compressed > 20
-
-
-def test_topk_sends_a_tenth_of_the_bytes_at_density_five_percent_or_less():
-    c = Compressor("topk", density=0.04, keyframe_every=100)
-    plain = compressed = 0
-    for v in vectors(steps=100):
-        plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
-        compressed += wire(c.fields(v))[1]
-    assert plain / compressed > 10
+    assert plain / compressed > ratio
 
 
 def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
