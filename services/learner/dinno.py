@@ -189,7 +189,7 @@ class DinnoNode(LocalNode):
 
     ``consensus`` weighs each parameter's pull towards each neighbour j by a per-parameter
     factor a_ij and a target z_ij (see the README's "Consensus weights"): penalty
-    rho x sum_j a_ij (theta - z_ij)^2 and dual step 2 rho a_ij (theta_i - z_ij). ``dinno``:
+    rho x sum_j a_ij (theta - z_ij)^2 and a dual step per link (:meth:`dual_step`). ``dinno``:
     a = 1, z the midpoint (DiNNO exactly). ``ramen``: RAMEN's weights from how many steps gave
     each parameter a gradient (the counts travel in the State, after the parameters).
     ``sigma``: z the precision-weighted midpoint of the two posteriors' means and
