@@ -238,6 +238,7 @@ class Samples(Message):
 
 
 STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign")
+CHAINED_ENCODINGS = ("topk", "sign")  # each such State adds to the sender's previous one
 SIGN_CHUNK = 256  # values per scale of a sign State
 
 
@@ -278,7 +279,7 @@ class State(Message):
         _require(self.params, "params", dtype, 1)
         if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
             raise ValueError("params: non-finite values")
-        chained = self.encoding in ("topk", "sign")
+        chained = self.encoding in CHAINED_ENCODINGS
         if not chained:
             if any(x is not None for x in (self.indices, self.size, self.base, self.scales)):
                 raise ValueError(f"indices, size, base and scales belong to topk and sign States, not {self.encoding}")

@@ -278,42 +278,39 @@ class DinnoNode(LocalNode):
         round): a dual step per link whose State came, then the primal steps against every
         neighbour whose newest State is recent enough (``stale_rounds``; 0: this round's only)."""
         n = self.param_count
-        st = torch.as_tensor(state_i, device=self.device)
-        th_i = st[:n]
-        set_flat(self.model, th_i)
-        if self.counts is not None:
-            self.counts = st[n:].clone()
-        self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
-        th_i = self.public_params(th_i)
-        if peers:  # a dual step per link heard from this round (as UDON: never against an outdated State)
+        self._start_round(k, state_i)
+        if peers:
             stj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
-            thj, cj = stj[:, :n], (stj[:, n:] if self.counts is not None else None)
-            z, a = self.targets(th_i, thj, cj)
             for row, j in enumerate(peers):
-                step = self.rho * (th_i - thj[row]) if a is None else self.dual_step(th_i, thj[row], z[row], a[row])
-                self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
-                self.known[j] = (k, thj[row], None if cj is None else cj[row])
-        self._primal(k)
+                self.known[j] = (k, stj[row, :n], stj[row, n:] if self.counts is not None else None)
+        self._primal(k, fresh=peers.keys())
         return self.state()
 
     def local_update(self, k: int, state_i: np.ndarray) -> np.ndarray:
         """A round between exchanges (``exchange_every`` > 1): the primal steps against the
         neighbours' newest States (their targets recomputed from this node's parameters now),
         the duals left as the last exchange made them."""
+        self._start_round(k, state_i)
+        self._primal(k, fresh=())
+        return self.state()
+
+    def _start_round(self, k: int, state_i: np.ndarray) -> None:
+        """Load the State the round starts from (and RAMEN's counts) and the round's rho."""
         n = self.param_count
         st = torch.as_tensor(state_i, device=self.device)
         set_flat(self.model, st[:n])
         if self.counts is not None:
             self.counts = st[n:].clone()
-        self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)
-        self._primal(k)
-        return self.state()
+        self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
 
-    def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """A link's dual step. ``ramen``: 2 rho a (theta_i - z), RAMEN's 2 W_i W_j / (W_i + W_j)
-        (theta_i - theta_j). ``sigma``: rho a (2 - a) (theta_i - theta_j), the same at both ends of
-        the link up to sign (a_ji = 2 - a_ij), so that the two duals of a link cancel as DiNNO's do;
-        an unbalanced pair would push the whole team off the data's optimum."""
+    def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor | None) -> torch.Tensor:
+        """A link's dual step. ``dinno`` (``a`` None): rho (theta_i - theta_j). ``ramen``:
+        2 rho a (theta_i - z), RAMEN's 2 W_i W_j / (W_i + W_j) (theta_i - theta_j). ``sigma``:
+        rho a (2 - a) (theta_i - theta_j), the same at both ends of the link up to sign
+        (a_ji = 2 - a_ij), so that the two duals of a link cancel as DiNNO's do; an unbalanced
+        pair would push the whole team off the data's optimum."""
+        if a is None:
+            return self.rho * (th_i - th_j)
         if self.consensus == "sigma":
             return self.rho * a * (2 - a) * (th_i - th_j)
         return 2 * self.rho * a * (th_i - z)
@@ -334,9 +331,10 @@ class DinnoNode(LocalNode):
         for j in [j for j, (arrived, _, _) in self.known.items() if k - arrived >= self.keep_for]:
             del self.known[j]
 
-    def _primal(self, k: int) -> None:
-        """``primal_iterations`` optimizer steps on the loss plus the consensus terms of the
-        neighbours whose newest State is at most ``keep_for`` rounds old."""
+    def _primal(self, k: int, fresh) -> None:
+        """A dual step per link in ``fresh`` (the neighbours heard from this round: as UDON, never
+        against an outdated State), then ``primal_iterations`` optimizer steps on the loss plus
+        the consensus terms of the neighbours whose newest State is at most ``keep_for`` rounds old."""
         self.forget_stale(k)
         th_reg = a = duals = None
         if self.known:
@@ -345,6 +343,10 @@ class DinnoNode(LocalNode):
             cj = torch.stack([self.known[j][2] for j in ids]) if self.counts is not None else None
             th_i = self.public_params(torch.nn.utils.parameters_to_vector(self.model.parameters()).detach())
             th_reg, a = self.targets(th_i, thj, cj)
+            for row, j in enumerate(ids):
+                if j in fresh:
+                    step = self.dual_step(th_i, thj[row], th_reg[row], None if a is None else a[row])
+                    self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
             duals = torch.stack([self.duals[j] for j in ids]).sum(0)  # the links this node hears from
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])
         if self.optimizers is None:
@@ -381,9 +383,10 @@ def sigma_pairs(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
         at += p.numel()
     mu, rho = [], []
     for name, (start, count) in offsets.items():
-        if name.endswith("_mu") and name[:-3] + "_rho" in offsets:
+        partner = offsets.get(name[:-3] + "_rho") if name.endswith("_mu") else None
+        if partner is not None:
             mu.append(torch.arange(start, start + count))
-            rho.append(torch.arange(offsets[name[:-3] + "_rho"][0], offsets[name[:-3] + "_rho"][0] + count))
+            rho.append(torch.arange(partner[0], partner[0] + count))
     if not mu:
         raise ValueError("consensus sigma needs a Bayesian network (parameters *_mu with their *_rho)")
     device = next(model.parameters()).device

@@ -198,14 +198,28 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", node_id, j, why, rnd)
 
+    def wait_over() -> bool:
+        """Poor links: this round has waited ``round_wait`` seconds for messages."""
+        return round_wait > 0 and time.monotonic() - round_started >= round_wait
+
+    def acceptable(msg: Envelope, own: np.ndarray | None) -> bool:
+        """Whether a neighbour's State passes ``check_state``; a refused one is counted, and when
+        the neighbour's refused States began is kept (it is left out if they go on)."""
+        why = check_state(msg.params, own) if check_state is not None else None
+        if why is None:
+            refused_since.pop(msg.sender, None)
+            return True
+        refused_since.setdefault(msg.sender, time.monotonic())
+        refuse(stats, node_id, msg, why, "implausible")
+        return False
+
     def finish_round() -> bool:
         """The paper's FINISHROUND: once the node has updated and every neighbour of the round is
         complete, or one has moved on (its State of the next round is here), go to the next
         round and send its State. Returns whether it did."""
         nonlocal rnd, updated, joining, round_state, round_started
         moved_on = any(j in buf.states[rnd + 1] for j in neighbours)
-        waited = round_wait > 0 and time.monotonic() - round_started >= round_wait
-        if not (updated and (active <= buf.complete[rnd] or moved_on or waited)):
+        if not (updated and (active <= buf.complete[rnd] or moved_on or wait_over())):
             return False
         joining = joining and not active
         buf.states.pop(rnd, None)
@@ -233,8 +247,7 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         while progressed and rnd < max_rounds:
             progressed = False
             peers = buf.states[rnd]
-            timed_out = round_wait > 0 and time.monotonic() - round_started >= round_wait
-            if not updated and (((active or not neighbours) and active <= peers.keys()) or timed_out):
+            if not updated and (((active or not neighbours) and active <= peers.keys()) or wait_over()):
                 busy_since = time.monotonic()
                 used = {j: peers[j] for j in active & peers.keys()}
                 for j in list(late):
@@ -308,14 +321,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 # newest word all the same: kept (the newest) for a round that gets none from it. Nothing
                 # is replayed: a neighbour behind catches up by itself, its rounds timing out.
                 heard[j] = now
-                if msg.kind == "state" and msg.round >= late.get(j, (-1, None))[0]:
-                    why = check_state(msg.params, state) if check_state is not None else None
-                    if why is None:
-                        late[j] = (msg.round, msg.params)
-                        refused_since.pop(j, None)
-                    else:
-                        refused_since.setdefault(j, now)
-                        refuse(stats, node_id, msg, why, "implausible")
+                if msg.kind == "state" and msg.round >= late.get(j, (-1, None))[0] and acceptable(msg, state):
+                    late[j] = (msg.round, msg.params)
                 continue
             if msg.round < rnd:  # a neighbour behind (restarted): send it the States it needs again
                 if behind and msg.round in history and now - replayed.get((j, msg.round), -1e9) > resend_after:
@@ -345,12 +352,8 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
                 continue
             # A node catching up holds stale parameters: it cannot judge distances to them.
             stale = (joining and not updated) or left_behind
-            why = check_state(msg.params, None if stale else state) if check_state is not None else None
-            if why is not None:
-                refused_since.setdefault(j, now)
-                refuse(stats, node_id, msg, why, "implausible")
+            if not acceptable(msg, None if stale else state):
                 continue
-            refused_since.pop(j, None)
             if jump:  # the team is too far ahead to replay: catch up with it
                 log.info("node %d: neighbour %d is at round %d; catching up from round %d%s", node_id, j, msg.round, rnd,
                          f" (left behind for {now - round_started:.0f} s)" if left_behind else "")

@@ -40,7 +40,7 @@ from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, Samples, WorldMap, all_finite, encode_state
+from swarmmap.shared.protocol import CHAINED_ENCODINGS, Keys, Metrics, Samples, WorldMap, all_finite, encode_state
 
 log = logging.getLogger("learner")
 
@@ -304,10 +304,11 @@ class RobotLearner:
                                    keep_rounds=-(-s.checkpoint_every // s.exchange_every) + 2, round_wait=s.round_wait_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
-        if self.stats.missed or getattr(transport, "ignored", 0) or getattr(transport, "unusable", 0):
+        ignored, unusable = getattr(transport, "ignored", 0), getattr(transport, "unusable", 0)  # (a StateCodec's)
+        if self.stats.missed or ignored or unusable:
             log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
                      "from neighbours out of range ignored; %d State(s) that could not be rebuilt", robot,
-                     self.stats.missed, getattr(transport, "ignored", 0), getattr(transport, "unusable", 0))
+                     self.stats.missed, ignored, unusable)
         set_flat(self.node.model, torch.from_numpy(self.node.params_of(final).copy()))
         self.final_state = final
         self.finish(final, self.stats.final_peers)
@@ -405,7 +406,7 @@ def links(transport, learner: RobotLearner) -> StateCodec:
         transport = FaultyTransport(transport, robot, cfg.faults)
     dynamic = dynamic_graph(s)
     compressor = Compressor(s.compression, s.topk_density, s.keyframe_every)
-    if s.compression in ("topk", "sign"):
+    if s.compression in CHAINED_ENCODINGS:
         learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
     return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
                       position=(lambda: learner.collector.position) if dynamic else None)
