@@ -200,3 +200,19 @@ def test_rounds_between_exchanges_pull_towards_the_last_states_and_keep_the_dual
     torch.testing.assert_close(a.duals[1], duals)
     # the stale neighbour still pulls: this node ends nearer to it than one trained alone from the same place
     assert np.linalg.norm(pulled - far) < np.linalg.norm(alone - far)
+
+
+@pytest.mark.parametrize("consensus", ["dinno", "sigma"])
+def test_the_two_duals_of_a_link_cancel(consensus):
+    """Whatever the weights, node i's dual for j and node j's dual for i sum to zero after an
+    exchange: an unbalanced pair would push the whole team off the data's optimum."""
+    s = bnn_settings(consensus=consensus)
+    a, b = (DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(i), s, seed=i + 1) for i in range(2))
+    th_a = a.state().copy()
+    th_b = th_a + np.random.default_rng(0).normal(0, 0.05, th_a.shape).astype(np.float32)
+    rho_b = [p.numel() for n, p in b.model.named_parameters()]  # make b far surer than a on some weights
+    th_b[sum(rho_b[:3]) : sum(rho_b[:4])] -= 3.0  # seq.1.weight_rho
+    a.update(0, th_a, {1: th_b})
+    b.update(0, th_b, {0: th_a})
+    torch.testing.assert_close(a.duals[1] + b.duals[0], torch.zeros_like(a.duals[1]), atol=1e-6, rtol=0)
+    assert a.duals[1].abs().max() > 1e-4
