@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from swarmmap.shared.compression import COMPRESSIONS
 from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, RunConfig, apply_override, resolve
 
 log = logging.getLogger("experiment")
@@ -452,7 +453,6 @@ def regularization(args: argparse.Namespace) -> int:
 
 
 CONSENSUS = ("dinno", "ramen", "sigma")
-COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign")
 
 
 def cell_name(consensus: str, link: float, every: int, compression: str) -> str:

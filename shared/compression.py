@@ -17,9 +17,17 @@ Modes:
   a receiver that missed one cannot rebuild the vector and waits for the next key frame
   (:class:`Decompressor` says so). Costs 8 bytes a kept value, plus 4 n / keyframe_every.
 - ``sign``: the same chain, but every value moves every State: the sign of each difference
-  (one bit) times the mean absolute difference of its run of SIGN_CHUNK values (scaled sign
+  (one bit) times the mean absolute difference of its run of SCALE_CHUNK values (scaled sign
   compression with error feedback, as in Karimireddy et al. 2019 and CHOCO-SGD). Costs
   n / 8 + 4 n / 256 bytes (about 28 x fewer than float32), plus the key frames.
+- ``quant``: the same chain, every value quantised to ``bits`` bits (``learner.quant_bits``,
+  2-8): the 2^(bits-1) - 1 steps either side of zero, the step of each run of SCALE_CHUNK
+  values its largest difference over that many. Unlike sign, one State can carry a
+  difference of any size, to within half a step, so the copies the receivers hold stay close
+  behind the parameters (CHOCO-SGD's quantised gossip). The codes, one byte each, are
+  Huffman-coded (deflate): differences cluster near zero, so a 3-bit code takes 1.4-2.2 bits.
+  Key frames are quant States too, of the vector itself at 8 bits. Costs at most
+  bits x n / 8 + 4 n / 256 bytes, plus at most n / keyframe_every for the key frames.
 
 One replica serves every neighbour: a State is published once to all of them (Zenoh pub/sub),
 so the differences are against the last States sent to the links, as one.
@@ -29,14 +37,16 @@ from __future__ import annotations
 
 import logging
 import math
+import zlib
 
 import numpy as np
 
-from swarmmap.shared.protocol import SIGN_CHUNK, State, Tensor
+from swarmmap.shared.protocol import SCALE_CHUNK, State, Tensor
 
 log = logging.getLogger("compression")
 
-COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign")
+COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign", "quant")
+KEYFRAME_BITS = 8  # a quant key frame: the vector itself, to within half of 1/127 of each run's largest value
 F16_MAX = float(np.finfo(np.float16).max)
 
 
@@ -55,12 +65,14 @@ def from_bf16_bits(bits: np.ndarray) -> np.ndarray:
 class Compressor:
     """The sender's side: turns each new State's vector into the fields of a :class:`State`."""
 
-    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100):
+    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 4):
         if mode not in COMPRESSIONS:
             raise ValueError(f"unknown compression {mode!r}; allowed: {', '.join(COMPRESSIONS)}")
         if not 0 < density <= 1:
             raise ValueError(f"topk density must lie in (0, 1], got {density}")
-        self.mode, self.density, self.keyframe_every = mode, density, max(1, keyframe_every)
+        if not 2 <= bits <= 8:
+            raise ValueError(f"quant bits must lie in 2..8, got {bits}")
+        self.mode, self.density, self.keyframe_every, self.bits = mode, density, max(1, keyframe_every), bits
         self.replica: np.ndarray | None = None
         self.seq = -1
         self.since_keyframe = 0
@@ -85,18 +97,23 @@ class Compressor:
             return {"params": Tensor.of(vec, "<f4")}
         self.seq += 1
         if keyframe or self.replica is None or self.replica.shape != vec.shape or self.since_keyframe + 1 >= self.keyframe_every:
-            self.replica = vec.copy()
             self.since_keyframe = 0
+            if self.mode == "quant":
+                self.replica = np.zeros_like(vec)
+                return self._quant(vec, KEYFRAME_BITS, None)
+            self.replica = vec.copy()
             return {"params": Tensor.of(vec, "<f4"), "seq": self.seq}
         self.since_keyframe += 1
         diff = vec - self.replica
+        if self.mode == "quant":
+            return self._quant(diff, self.bits, self.seq - 1)
         if self.mode == "sign":
-            chunks = -(-diff.size // SIGN_CHUNK)
-            padded = np.zeros(chunks * SIGN_CHUNK, np.float32)
+            chunks = -(-diff.size // SCALE_CHUNK)
+            padded = np.zeros(chunks * SCALE_CHUNK, np.float32)
             padded[: diff.size] = np.abs(diff)
-            counts = np.full(chunks, SIGN_CHUNK, np.float32)
-            counts[-1] = diff.size - (chunks - 1) * SIGN_CHUNK
-            scales = (padded.reshape(chunks, SIGN_CHUNK).sum(1) / counts).astype(np.float32)
+            counts = np.full(chunks, SCALE_CHUNK, np.float32)
+            counts[-1] = diff.size - (chunks - 1) * SCALE_CHUNK
+            scales = (padded.reshape(chunks, SCALE_CHUNK).sum(1) / counts).astype(np.float32)
             up = diff >= 0
             self.replica += sign_steps(up, scales)
             return {"encoding": "sign", "params": Tensor.of(np.packbits(up), "|u1"), "scales": Tensor.of(scales, "<f4"),
@@ -110,9 +127,67 @@ class Compressor:
                 "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
 
 
+    def _quant(self, diff: np.ndarray, bits: int, base: int | None) -> dict:
+        codes, steps = quantise(diff, bits)
+        self.replica += dequantise(codes, steps, bits)
+        fields = {"encoding": "quant", "params": Tensor.of(deflate_codes(codes), "|u1"), "scales": Tensor.of(steps, "<f4"),
+                  "bits": bits, "size": int(diff.size), "seq": self.seq}
+        return fields if base is None else {**fields, "base": base}
+
+
+def _runs(values: np.ndarray) -> np.ndarray:
+    """``values`` zero-padded to whole runs of SCALE_CHUNK, one run a row."""
+    padded = np.zeros(-(-values.size // SCALE_CHUNK) * SCALE_CHUNK, np.float32)
+    padded[: values.size] = values
+    return padded.reshape(-1, SCALE_CHUNK)
+
+
+def quantise(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Codes (uint8, 0 .. 2^bits - 2) and the step of each run of SCALE_CHUNK values: each value
+    rounded to the nearest of the 2^(bits-1) - 1 steps either side of zero, the run's largest
+    magnitude at the outermost step."""
+    levels = (1 << (bits - 1)) - 1
+    runs = _runs(values)
+    steps = (np.abs(runs).max(1) / levels).astype(np.float32)
+    scaled = runs / np.where(steps > 0, steps, 1)[:, None]
+    codes = (np.clip(np.rint(scaled), -levels, levels) + levels).astype(np.uint8).reshape(-1)[: values.size]
+    return codes, steps
+
+
+def dequantise(codes: np.ndarray, steps: np.ndarray, bits: int) -> np.ndarray:
+    """The values that codes stand for (any code 0 .. 2^bits - 1 gives a finite value)."""
+    levels = (1 << (bits - 1)) - 1
+    step = np.repeat(steps, SCALE_CHUNK)[: codes.size]
+    return ((codes.astype(np.float32) - levels) * step).astype(np.float32)
+
+
+def deflate_codes(codes: np.ndarray) -> np.ndarray:
+    """Codes (one byte each) Huffman-coded (raw deflate without string matching: the codes of
+    differences are mostly near zero, so they take about as many bits as their entropy, 1.4-2.2
+    for 3-bit codes, instead of 3)."""
+    z = zlib.compressobj(9, zlib.DEFLATED, -15, 9, zlib.Z_HUFFMAN_ONLY)
+    return np.frombuffer(z.compress(codes.tobytes()) + z.flush(), np.uint8)
+
+
+def inflate_codes(data: np.ndarray, count: int, bits: int) -> np.ndarray:
+    """The ``count`` codes of :func:`deflate_codes`; ValueError for anything else (a stream that is
+    broken, holds more or fewer codes, or codes beyond ``bits``). Never inflates past ``count``."""
+    z = zlib.decompressobj(-15)
+    try:
+        raw = z.decompress(data.tobytes(), count)
+    except zlib.error as e:
+        raise ValueError(f"its codes are not a deflate stream ({e})") from None
+    if len(raw) != count or not z.eof or z.unconsumed_tail or z.unused_data:
+        raise ValueError(f"its codes stream does not hold exactly {count} codes")
+    codes = np.frombuffer(raw, np.uint8)
+    if count and int(codes.max()) >= 1 << bits:
+        raise ValueError(f"it holds codes beyond {bits} bits")
+    return codes
+
+
 def sign_steps(up: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """A sign State's step per value: + or - the scale of its run of SIGN_CHUNK values."""
-    step = np.repeat(scales, SIGN_CHUNK)[: up.size]
+    """A sign State's step per value: + or - the scale of its run of SCALE_CHUNK values."""
+    step = np.repeat(scales, SCALE_CHUNK)[: up.size]
     return np.where(up, step, -step).astype(np.float32)
 
 
@@ -138,7 +213,9 @@ class Decompressor:
         if msg.encoding == "bf16":
             return from_bf16_bits(msg.params.numpy())
         held = self.replicas.get(msg.sender)
-        if held is not None and held[0] == msg.seq and held[1].size == msg.size:
+        if msg.encoding == "quant" and msg.base is None:  # a key frame
+            held = (None, np.zeros(msg.size, np.float32))
+        elif held is not None and held[0] == msg.seq and held[1].size == msg.size:
             return held[1].copy()  # the same State again (a resend)
         if held is None or held[0] != msg.base or held[1].size != msg.size:
             self.broken += 1
@@ -147,7 +224,15 @@ class Decompressor:
                         + ": waiting for its next key frame")
             return None
         vec = held[1]
-        if msg.encoding == "sign":
+        if msg.encoding == "quant":
+            try:
+                codes = inflate_codes(msg.params.numpy(), msg.size, msg.bits)
+            except ValueError as e:
+                self.broken += 1
+                self.why = f"quant State {msg.seq} of node {msg.sender} is refused: {e}; waiting for its next key frame"
+                return None
+            vec = vec + dequantise(codes, msg.scales.numpy(), msg.bits)
+        elif msg.encoding == "sign":
             vec += sign_steps(np.unpackbits(msg.params.numpy(), count=msg.size).astype(bool), msg.scales.numpy())
         else:
             vec[msg.indices.numpy()] += msg.params.numpy()

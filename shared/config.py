@@ -206,11 +206,14 @@ class LearnerSettings(Section):
                                                   "exchange_every)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
-    compression: Literal["none", "f16", "bf16", "topk", "sign"] = Field(
+    compression: Literal["none", "f16", "bf16", "topk", "sign", "quant"] = Field(
         "none", description="State encoding on the wire: float32, half precision, bfloat16, or differences with error "
-                            "feedback: top-k, or the sign of every value with a scale per 256")
+                            "feedback: top-k, the sign of every value with a scale per 256, or every value quantised "
+                            "to quant_bits with a step per 256")
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
-    keyframe_every: int = Field(100, ge=1, description="topk, sign: every this many States, one carries the whole vector")
+    quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value (3: 10.2x fewer bytes than float32)")
+    keyframe_every: int = Field(100, ge=1, description="topk, sign, quant: every this many States, one carries the whole "
+                                                       "vector (quant: at 8 bits)")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
 

@@ -237,9 +237,9 @@ class Samples(Message):
         return self
 
 
-STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign")
-CHAINED_ENCODINGS = ("topk", "sign")  # each such State adds to the sender's previous one
-SIGN_CHUNK = 256  # values per scale of a sign State
+STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign", "quant")
+CHAINED_ENCODINGS = ("topk", "sign", "quant")  # each such State adds to the sender's previous one
+SCALE_CHUNK = 256  # values per scale of a sign or quant State
 
 
 class State(Message):
@@ -256,7 +256,12 @@ class State(Message):
       ``f32`` State with a ``seq`` starts such a chain again (a key frame).
     - ``sign``: the same chain, dense: ``params`` (``|u1``) packs one bit per value (numpy's
       packbits, most significant bit first; 1 = add, 0 = subtract) and ``scales`` (``<f4``)
-      holds the step of each run of SIGN_CHUNK values, to add to the State numbered ``base``.
+      holds the step of each run of SCALE_CHUNK values, to add to the State numbered ``base``.
+    - ``quant``: the same chain, dense: ``params`` (``|u1``) is a raw deflate stream (RFC 1951)
+      of one byte per value, a code c below 2^``bits`` (``bits`` 2-8); the value added is
+      (c - 2^(bits-1) + 1) x the step in ``scales`` (``<f4``) of its run of SCALE_CHUNK values.
+      Without ``base``, the State is a key frame: the codes stand for the vector itself. A
+      stream that does not inflate to exactly ``size`` such codes is refused by the receiver.
 
     ``position`` [x, y] (m), where the sender's robot is, comes with a dynamic disk graph
     (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it."""
@@ -272,27 +277,31 @@ class State(Message):
     base: Annotated[int, Field(ge=0)] | None = None
     position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)] | None = None
     scales: Tensor | None = None
+    bits: Annotated[int, Field(ge=2, le=8)] | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
-        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1"}[self.encoding]
+        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1", "quant": "|u1"}[self.encoding]
         _require(self.params, "params", dtype, 1)
         if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
             raise ValueError("params: non-finite values")
         chained = self.encoding in CHAINED_ENCODINGS
+        if (self.bits is not None) != (self.encoding == "quant"):
+            raise ValueError("bits belong to quant States, and every quant State has them")
         if not chained:
             if any(x is not None for x in (self.indices, self.size, self.base, self.scales)):
-                raise ValueError(f"indices, size, base and scales belong to topk and sign States, not {self.encoding}")
+                raise ValueError(f"indices, size, base and scales belong to chained States, not {self.encoding}")
             return self
-        if self.size is None or self.seq is None or self.base is None:
+        if self.size is None or self.seq is None or (self.base is None and self.encoding != "quant"):
             raise ValueError(f"a {self.encoding} State needs size, seq and base")
-        if self.encoding == "sign":
+        if self.encoding in ("sign", "quant"):
             if self.indices is not None or self.scales is None:
-                raise ValueError("a sign State needs scales and no indices")
+                raise ValueError(f"a {self.encoding} State needs scales and no indices")
             _require(self.scales, "scales", "<f4", 1)
-            if self.params.shape[0] != -(-self.size // 8) or self.scales.shape[0] != -(-self.size // SIGN_CHUNK):
-                raise ValueError(f"a sign State of size {self.size} needs {-(-self.size // 8)} bytes of signs and "
-                                 f"{-(-self.size // SIGN_CHUNK)} scales")
+            if self.scales.shape[0] != -(-self.size // SCALE_CHUNK):
+                raise ValueError(f"a {self.encoding} State of size {self.size} needs {-(-self.size // SCALE_CHUNK)} scales")
+            if self.encoding == "sign" and self.params.shape[0] != -(-self.size // 8):
+                raise ValueError(f"a sign State of size {self.size} needs {-(-self.size // 8)} bytes of signs")
             return self
         if self.indices is None or self.scales is not None:
             raise ValueError("a topk State needs indices, size, seq and base")

@@ -405,7 +405,7 @@ def links(transport, learner: RobotLearner) -> StateCodec:
     if any_faults(cfg.faults):
         transport = FaultyTransport(transport, robot, cfg.faults)
     dynamic = dynamic_graph(s)
-    compressor = Compressor(s.compression, s.topk_density, s.keyframe_every)
+    compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits)
     if s.compression in CHAINED_ENCODINGS:
         learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
     return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from swarmmap.shared.compression import Compressor, Decompressor, from_bf16_bits, to_bf16_bits
+from swarmmap.shared.compression import Compressor, Decompressor, deflate_codes, from_bf16_bits, inflate_codes, quantise, to_bf16_bits
 from swarmmap.shared.protocol import ProtocolError, State, Tensor, decode, encode
 
 RUN = "run-c"
@@ -51,7 +51,7 @@ def test_f16_sends_float32_when_values_exceed_half_precision(caplog):
     assert Decompressor().vector(wire(fields)[0]).tolist() == [1.0, 1e6]
 
 
-@pytest.mark.parametrize("mode", ["topk", "sign"])
+@pytest.mark.parametrize("mode", ["topk", "sign", "quant"])
 def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mode):
     c, d = Compressor(mode, density=0.02, keyframe_every=1000), Decompressor()
     sent = 0
@@ -66,13 +66,15 @@ def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mod
         back = d.vector(wire(c.fields(v))[0])
     if mode == "topk":
         np.testing.assert_allclose(back, v, atol=1e-6)
+    elif mode == "quant":  # each State takes a third of what is still owed, or more: the copy converges
+        np.testing.assert_allclose(back, v, atol=1e-5)
     else:  # each sign step moves every value by its run's mean gap: it closes in, then dithers at a tiny scale
         assert np.abs(back - v).max() < gap and np.abs(back - v).mean() < 2e-3
 
 
-@pytest.mark.parametrize("mode, density, ratio", [("topk", 0.04, 10), ("sign", 0.01, 20)])
+@pytest.mark.parametrize("mode, density, ratio", [("topk", 0.04, 10), ("sign", 0.01, 20), ("quant", 0, 10)])
 def test_chained_modes_send_a_tenth_of_the_bytes_or_less(mode, density, ratio):
-    c = Compressor(mode, density=density, keyframe_every=100)
+    c = Compressor(mode, density=density or 0.01, keyframe_every=100, bits=3)
     plain = compressed = 0
     for v in vectors(steps=100):
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
@@ -106,6 +108,32 @@ def test_a_key_frame_on_demand_starts_the_chain_again():
     np.testing.assert_array_equal(fresh.vector(nxt), d.vector(nxt))
 
 
+@pytest.mark.parametrize("bits", range(2, 9))
+def test_quant_codes_pack_and_come_back_within_half_a_step(bits):
+    rng = np.random.default_rng(bits)
+    v = (rng.standard_normal(1024) * np.repeat([1e-4, 1.0, 30.0, 0.0], 256)).astype(np.float32)  # runs of any scale
+    codes, steps = quantise(v, bits)
+    assert codes.max() <= 2 ** bits - 2 and steps.shape == (4,) and steps[3] == 0
+    np.testing.assert_array_equal(inflate_codes(deflate_codes(codes), v.size, bits), codes)
+    c, d = Compressor("quant", keyframe_every=100, bits=bits), Decompressor()
+    d.vector(wire(c.fields(np.zeros_like(v)))[0])  # the key frame
+    back = d.vector(wire(c.fields(v))[0])
+    np.testing.assert_array_equal(back, c.replica)
+    run_max = np.abs(v).reshape(4, 256).max(1)
+    assert (np.abs(back - v).reshape(4, 256).max(1) <= run_max / (2 ** bits - 2) * 1.0001).all()
+
+
+def test_a_quant_key_frame_starts_anywhere_and_a_missed_update_waits_for_the_next():
+    c = Compressor("quant", keyframe_every=4, bits=3)
+    vs = list(vectors(steps=9))
+    states = [wire(c.fields(v))[0] for v in vs]
+    assert [s.base for s in states[:5]] == [None, 0, 1, 2, None] and states[0].bits == 8 and states[1].bits == 3
+    late = Decompressor()  # joins at the second key frame
+    assert late.vector(states[3]) is None and "waiting for its next key frame" in late.why
+    np.testing.assert_allclose(late.vector(states[4]), vs[4], atol=np.abs(vs[4]).max() / 254 * 1.0001)
+    np.testing.assert_array_equal(late.vector(states[5]), c.replica if len(states) == 6 else late.replicas[1][1])
+
+
 def tensor(values: np.ndarray) -> dict:
     return {"dtype": values.dtype.str, "shape": list(values.shape), "data": values.tobytes()}
 
@@ -125,6 +153,38 @@ def test_hostile_topk_states_are_refused(change, why):
 
     with pytest.raises(ProtocolError, match=why):
         decode(msgpack.packb(doc, use_bin_type=True), State, run=RUN)
+
+
+@pytest.mark.parametrize("change, why", [
+    (lambda f: f.pop("bits"), "bits belong to quant States"),
+    (lambda f: f.update(bits=9), "less than or equal to 8"),
+    (lambda f: f.update(scales=tensor(np.array([1, 2], np.float32))), "needs 1 scales"),
+    (lambda f: f.update(scales=tensor(np.array([np.nan], np.float32))), "non-finite"),
+])
+def test_hostile_quant_states_are_refused(change, why):
+    fields = Compressor("quant", bits=3).fields(np.ones(10, np.float32))
+    doc = State(run=RUN, sender=1, round=0, **fields).model_dump(mode="python", exclude_none=True)
+    change(doc)
+    import msgpack
+
+    with pytest.raises(ProtocolError, match=why):
+        decode(msgpack.packb(doc, use_bin_type=True), State, run=RUN)
+
+
+@pytest.mark.parametrize("stream, why", [
+    (np.frombuffer(b"not deflate at all", np.uint8), "not a deflate stream"),
+    (deflate_codes(np.zeros(9, np.uint8)), "exactly 10 codes"),
+    (deflate_codes(np.zeros(11, np.uint8)), "exactly 10 codes"),
+    (deflate_codes(np.zeros(10_000_000, np.uint8)), "exactly 10 codes"),  # a bomb: inflated no further than 10
+    (deflate_codes(np.full(10, 8, np.uint8)), "beyond 3 bits"),
+])
+def test_a_quant_state_whose_codes_do_not_inflate_to_its_size_is_refused_by_the_receiver(stream, why):
+    c, d = Compressor("quant", bits=3), Decompressor()
+    d.vector(wire(c.fields(np.ones(10, np.float32)))[0])
+    good = c.fields(np.full(10, 2, np.float32))
+    bad = wire({**good, "params": Tensor.of(stream, "|u1")})[0]
+    assert d.vector(bad) is None and why in d.why and "quant State 1 of node 1 is refused" in d.why
+    assert d.vector(wire(good)[0]) is not None  # a resend of the good one still adds to the chain
 
 
 def test_non_finite_bf16_bits_are_refused():
