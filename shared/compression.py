@@ -26,8 +26,9 @@ Modes:
   difference of any size, to within half a step, so the copies the receivers hold stay close
   behind the parameters (CHOCO-SGD's quantised gossip). The codes, one byte each, are
   Huffman-coded (deflate): differences cluster near zero, so a 3-bit code takes 1.4-2.2 bits.
-  Key frames are quant States too, of the vector itself at 8 bits. Costs at most
-  bits x n / 8 + 4 n / 256 bytes, plus at most n / keyframe_every for the key frames.
+  Key frames are quant States too, of the vector itself at 16 bits (an 8-bit one put a jump
+  into every copy that the chain then took rounds to close). Costs at most
+  bits x n / 8 + 4 n / 256 bytes, plus at most 2 n / keyframe_every for the key frames.
 
 One replica serves every neighbour: a State is published once to all of them (Zenoh pub/sub),
 so the differences are against the last States sent to the links, as one.
@@ -46,7 +47,7 @@ from swarmmap.shared.protocol import SCALE_CHUNK, State, Tensor
 log = logging.getLogger("compression")
 
 COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign", "quant")
-KEYFRAME_BITS = 8  # a quant key frame: the vector itself, to within half of 1/127 of each run's largest value
+KEYFRAME_BITS = 16  # a quant key frame: the vector itself, to within half of 1/32767 of each run's largest value
 F16_MAX = float(np.finfo(np.float16).max)
 
 
@@ -70,8 +71,8 @@ class Compressor:
             raise ValueError(f"unknown compression {mode!r}; allowed: {', '.join(COMPRESSIONS)}")
         if not 0 < density <= 1:
             raise ValueError(f"topk density must lie in (0, 1], got {density}")
-        if not 2 <= bits <= 8:
-            raise ValueError(f"quant bits must lie in 2..8, got {bits}")
+        if not 2 <= bits <= 16:
+            raise ValueError(f"quant bits must lie in 2..16, got {bits}")
         self.mode, self.density, self.keyframe_every, self.bits = mode, density, max(1, keyframe_every), bits
         self.replica: np.ndarray | None = None
         self.seq = -1
@@ -142,15 +143,20 @@ def _runs(values: np.ndarray) -> np.ndarray:
     return padded.reshape(-1, SCALE_CHUNK)
 
 
+def code_dtype(bits: int) -> np.dtype:
+    """Codes of up to 8 bits take a byte, longer ones (key frames) two, little-endian."""
+    return np.dtype(np.uint8 if bits <= 8 else "<u2")
+
+
 def quantise(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Codes (uint8, 0 .. 2^bits - 2) and the step of each run of SCALE_CHUNK values: each value
+    """Codes (:func:`code_dtype`, 0 .. 2^bits - 2) and the step of each run of SCALE_CHUNK values: each value
     rounded to the nearest of the 2^(bits-1) - 1 steps either side of zero, the run's largest
     magnitude at the outermost step."""
     levels = (1 << (bits - 1)) - 1
     runs = _runs(values)
     steps = (np.abs(runs).max(1) / levels).astype(np.float32)
     scaled = runs / np.where(steps > 0, steps, 1)[:, None]
-    codes = (np.clip(np.rint(scaled), -levels, levels) + levels).astype(np.uint8).reshape(-1)[: values.size]
+    codes = (np.clip(np.rint(scaled), -levels, levels) + levels).astype(code_dtype(bits)).reshape(-1)[: values.size]
     return codes, steps
 
 
@@ -162,7 +168,7 @@ def dequantise(codes: np.ndarray, steps: np.ndarray, bits: int) -> np.ndarray:
 
 
 def deflate_codes(codes: np.ndarray) -> np.ndarray:
-    """Codes (one byte each) Huffman-coded (raw deflate without string matching: the codes of
+    """Codes (one or two bytes each) Huffman-coded (raw deflate without string matching: the codes of
     differences are mostly near zero, so they take about as many bits as their entropy, 1.4-2.2
     for 3-bit codes, instead of 3)."""
     z = zlib.compressobj(9, zlib.DEFLATED, -15, 9, zlib.Z_HUFFMAN_ONLY)
@@ -172,14 +178,15 @@ def deflate_codes(codes: np.ndarray) -> np.ndarray:
 def inflate_codes(data: np.ndarray, count: int, bits: int) -> np.ndarray:
     """The ``count`` codes of :func:`deflate_codes`; ValueError for anything else (a stream that is
     broken, holds more or fewer codes, or codes beyond ``bits``). Never inflates past ``count``."""
+    dtype = code_dtype(bits)
     z = zlib.decompressobj(-15)
     try:
-        raw = z.decompress(data.tobytes(), count)
+        raw = z.decompress(data.tobytes(), count * dtype.itemsize)
     except zlib.error as e:
         raise ValueError(f"its codes are not a deflate stream ({e})") from None
-    if len(raw) != count or not z.eof or z.unconsumed_tail or z.unused_data:
+    if len(raw) != count * dtype.itemsize or not z.eof or z.unconsumed_tail or z.unused_data:
         raise ValueError(f"its codes stream does not hold exactly {count} codes")
-    codes = np.frombuffer(raw, np.uint8)
+    codes = np.frombuffer(raw, dtype)
     if count and int(codes.max()) >= 1 << bits:
         raise ValueError(f"it holds codes beyond {bits} bits")
     return codes

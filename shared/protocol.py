@@ -258,7 +258,8 @@ class State(Message):
       packbits, most significant bit first; 1 = add, 0 = subtract) and ``scales`` (``<f4``)
       holds the step of each run of SCALE_CHUNK values, to add to the State numbered ``base``.
     - ``quant``: the same chain, dense: ``params`` (``|u1``) is a raw deflate stream (RFC 1951)
-      of one byte per value, a code c below 2^``bits`` (``bits`` 2-8); the value added is
+      of one code c per value, below 2^``bits`` (``bits`` 2-16; a byte each up to 8 bits, else
+      two, little-endian); the value added is
       (c - 2^(bits-1) + 1) x the step in ``scales`` (``<f4``) of its run of SCALE_CHUNK values.
       Without ``base``, the State is a key frame: the codes stand for the vector itself. A
       stream that does not inflate to exactly ``size`` such codes is refused by the receiver.
@@ -277,7 +278,7 @@ class State(Message):
     base: Annotated[int, Field(ge=0)] | None = None
     position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)] | None = None
     scales: Tensor | None = None
-    bits: Annotated[int, Field(ge=2, le=8)] | None = None
+    bits: Annotated[int, Field(ge=2, le=16)] | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:

@@ -23,7 +23,7 @@ import numpy as np
 
 from swarmmap.services.learner.exchange import Envelope, Transport
 from swarmmap.shared.compression import Compressor, Decompressor
-from swarmmap.shared.protocol import CHAINED_ENCODINGS, State
+from swarmmap.shared.protocol import State
 
 log = logging.getLogger("learner")
 
@@ -68,8 +68,8 @@ class StateCodec:
             here = self.position() if self.position is not None else None
             far = here is not None and math.dist(here, env.params.position) > self.radius
             self.out_of_range[env.sender] = far
-            if far and self.decompressor.replicas.get(env.sender) is not None and env.params.encoding in CHAINED_ENCODINGS:
-                self.decompressor.vector(env.params)  # a topk chain is followed even out of range
+            if far and env.params.seq is not None:
+                self.decompressor.vector(env.params)  # a chain (its key frames too) is followed even out of range
             return not far
         return not self.out_of_range.get(env.sender, False)
 

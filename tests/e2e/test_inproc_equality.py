@@ -24,12 +24,12 @@ def run(run_dir, *extra):
     return json.loads((run_dir / "summary.json").read_text())
 
 
-THIN = ["--set", "learner.consensus=sigma", "--set", "learner.compression=topk", "--set", "learner.topk_density=0.05",
-        "--set", "learner.keyframe_every=3", "--set", "learner.exchange_every=3"]
+THIN = ["--set", "learner.consensus=sigma", "--set", "learner.compression=quant", "--set", "learner.keyframe_every=3",
+        "--set", "learner.exchange_every=3"]
 
 
 @pytest.mark.parametrize("model, links", [("fourier", []), ("bnn", []), ("bnn", THIN)],
-                         ids=["fourier", "bnn", "bnn-sigma-topk-every-3"])
+                         ids=["fourier", "bnn", "bnn-sigma-quant-every-3"])
 def test_zenoh_run_equals_inproc_run(tmp_path, model, links):
     extra = ["--set", f"learner.model={model}", *links]
     if model == "bnn":

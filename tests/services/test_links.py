@@ -77,6 +77,16 @@ def test_lossless_topk_is_the_reference_and_lossy_topk_sends_a_tenth():
     assert all(thin.bytes_sent[i] < states_plain / 5 for i in COMPLETE3)
 
 
+def test_quant_states_keep_the_copies_close_behind_at_a_fifth_of_the_bytes():
+    init = init_vectors(COMPLETE3)
+    ref = reference(COMPLETE3, 30, init)
+    plain = run_wire(COMPLETE3, 30, init)[2]
+    results, _, quant, _ = run_wire(COMPLETE3, 30, init, compression="quant")
+    for i in COMPLETE3:  # the mixing ends where it would (values near 10) to within 3%, from 3-bit differences
+        np.testing.assert_allclose(results[i], ref[i], atol=0.3)
+    assert all(plain.bytes_sent[i] / quant.bytes_sent[i] > 5 for i in COMPLETE3)  # RoundCompletes are not compressed
+
+
 @pytest.mark.parametrize("mode", ["f16", "bf16"])
 def test_half_precision_states_end_near_the_reference(mode):
     init = init_vectors(COMPLETE3)
