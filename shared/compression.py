@@ -66,7 +66,7 @@ def from_bf16_bits(bits: np.ndarray) -> np.ndarray:
 class Compressor:
     """The sender's side: turns each new State's vector into the fields of a :class:`State`."""
 
-    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 4):
+    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 3):
         if mode not in COMPRESSIONS:
             raise ValueError(f"unknown compression {mode!r}; allowed: {', '.join(COMPRESSIONS)}")
         if not 0 < density <= 1:
@@ -127,7 +127,6 @@ class Compressor:
         return {"encoding": "topk", "params": Tensor.of(values, "<f4"), "indices": Tensor.of(idx, "<u4"),
                 "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
 
-
     def _quant(self, diff: np.ndarray, bits: int, base: int | None) -> dict:
         codes, steps = quantise(diff, bits)
         self.replica += dequantise(codes, steps, bits)
@@ -181,7 +180,7 @@ def inflate_codes(data: np.ndarray, count: int, bits: int) -> np.ndarray:
     dtype = code_dtype(bits)
     z = zlib.decompressobj(-15)
     try:
-        raw = z.decompress(data.tobytes(), count * dtype.itemsize)
+        raw = z.decompress(data.tobytes(), max(1, count * dtype.itemsize))  # 0 would mean no limit
     except zlib.error as e:
         raise ValueError(f"its codes are not a deflate stream ({e})") from None
     if len(raw) != count * dtype.itemsize or not z.eof or z.unconsumed_tail or z.unused_data:

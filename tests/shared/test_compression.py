@@ -187,6 +187,12 @@ def test_a_quant_state_whose_codes_do_not_inflate_to_its_size_is_refused_by_the_
     assert d.vector(wire(good)[0]) is not None  # a resend of the good one still adds to the chain
 
 
+def test_an_empty_quant_state_cannot_carry_a_bomb():
+    with pytest.raises(ValueError, match="exactly 0 codes"):
+        inflate_codes(deflate_codes(np.zeros(10_000_000, np.uint8)), 0, 3)
+    assert inflate_codes(deflate_codes(np.zeros(0, np.uint8)), 0, 3).size == 0
+
+
 def test_non_finite_bf16_bits_are_refused():
     bits = to_bf16_bits(np.array([1.0, np.inf], np.float32))
     with pytest.raises(ValueError, match="non-finite"):
