@@ -211,9 +211,9 @@ class LearnerSettings(Section):
                             "feedback: top-k, the sign of every value with a scale per 256, or every value quantised "
                             "to quant_bits with a step per 256")
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
-    quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value (3: 10.2x fewer bytes than float32)")
+    quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value before Huffman coding (2-8)")
     keyframe_every: int = Field(100, ge=1, description="topk, sign, quant: every this many States, one carries the whole "
-                                                       "vector (quant: at 8 bits)")
+                                                       "vector (quant: at 16 bits)")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
 
