@@ -109,12 +109,10 @@ class Compressor:
         if self.mode == "quant":
             return self._quant(diff, self.bits, self.seq - 1)
         if self.mode == "sign":
-            chunks = -(-diff.size // SCALE_CHUNK)
-            padded = np.zeros(chunks * SCALE_CHUNK, np.float32)
-            padded[: diff.size] = np.abs(diff)
-            counts = np.full(chunks, SCALE_CHUNK, np.float32)
-            counts[-1] = diff.size - (chunks - 1) * SCALE_CHUNK
-            scales = (padded.reshape(chunks, SCALE_CHUNK).sum(1) / counts).astype(np.float32)
+            runs = np.abs(_runs(diff))
+            counts = np.full(len(runs), SCALE_CHUNK, np.float32)
+            counts[-1] = diff.size - (len(runs) - 1) * SCALE_CHUNK
+            scales = (runs.sum(1) / counts).astype(np.float32)
             up = diff >= 0
             self.replica += sign_steps(up, scales)
             return {"encoding": "sign", "params": Tensor.of(np.packbits(up), "|u1"), "scales": Tensor.of(scales, "<f4"),
@@ -142,6 +140,11 @@ def _runs(values: np.ndarray) -> np.ndarray:
     return padded.reshape(-1, SCALE_CHUNK)
 
 
+def per_value(steps: np.ndarray, count: int) -> np.ndarray:
+    """Each run's step (or scale), repeated for each of its values: the first ``count``."""
+    return np.repeat(steps, SCALE_CHUNK)[:count]
+
+
 def code_dtype(bits: int) -> np.dtype:
     """Codes of up to 8 bits take a byte, longer ones (key frames) two, little-endian."""
     return np.dtype(np.uint8 if bits <= 8 else "<u2")
@@ -162,8 +165,7 @@ def quantise(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
 def dequantise(codes: np.ndarray, steps: np.ndarray, bits: int) -> np.ndarray:
     """The values that codes stand for (any code 0 .. 2^bits - 1 gives a finite value)."""
     levels = (1 << (bits - 1)) - 1
-    step = np.repeat(steps, SCALE_CHUNK)[: codes.size]
-    return ((codes.astype(np.float32) - levels) * step).astype(np.float32)
+    return ((codes.astype(np.float32) - levels) * per_value(steps, codes.size)).astype(np.float32)
 
 
 def deflate_codes(codes: np.ndarray) -> np.ndarray:
@@ -193,7 +195,7 @@ def inflate_codes(data: np.ndarray, count: int, bits: int) -> np.ndarray:
 
 def sign_steps(up: np.ndarray, scales: np.ndarray) -> np.ndarray:
     """A sign State's step per value: + or - the scale of its run of SCALE_CHUNK values."""
-    step = np.repeat(scales, SCALE_CHUNK)[: up.size]
+    step = per_value(scales, up.size)
     return np.where(up, step, -step).astype(np.float32)
 
 
@@ -237,7 +239,7 @@ class Decompressor:
                 self.broken += 1
                 self.why = f"quant State {msg.seq} of node {msg.sender} is refused: {e}; waiting for its next key frame"
                 return None
-            vec = vec + dequantise(codes, msg.scales.numpy(), msg.bits)
+            vec += dequantise(codes, msg.scales.numpy(), msg.bits)
         elif msg.encoding == "sign":
             vec += sign_steps(np.unpackbits(msg.params.numpy(), count=msg.size).astype(bool), msg.scales.numpy())
         else:
