@@ -211,9 +211,8 @@ class DinnoNode(LocalNode):
         else:
             self.groups = [[p for n, p in zip(names, params) if not is_rho(n)], [p for n, p in zip(names, params) if is_rho(n)]]
         self.optimizers = None if settings.optimizer_per_round else self._optimizers(float(self.lrs[0]))
-        self.consensus = settings.consensus
-        self.mu_at, self.rho_at = sigma_pairs(model) if self.consensus == "sigma" else (None, None)
-        self.counts = torch.zeros(self.param_count, device=self.device) if self.consensus == "ramen" else None
+        self.mu_at, self.rho_at = sigma_pairs(model) if self.s.consensus == "sigma" else (None, None)
+        self.counts = torch.zeros(self.param_count, device=self.device) if self.s.consensus == "ramen" else None
         # Each neighbour's newest State: (round it arrived, parameters, RAMEN counts); it keeps pulling
         # for stale_rounds rounds (at least exchange_every) when no newer one comes.
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
@@ -267,9 +266,9 @@ class DinnoNode(LocalNode):
 
     def targets(self, th_i: torch.Tensor, thj: torch.Tensor, cj: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Each neighbour's target z_ij (rows) and weights a_ij (None: DiNNO's, 1 everywhere)."""
-        if self.consensus == "dinno":
+        if self.s.consensus == "dinno":
             return (thj + th_i) / 2, None
-        if self.consensus == "ramen":
+        if self.s.consensus == "ramen":
             return ramen_targets(th_i, self.counts, thj, cj)
         return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.s.consensus_min_weight)
 
@@ -311,7 +310,7 @@ class DinnoNode(LocalNode):
         pair would push the whole team off the data's optimum."""
         if a is None:
             return self.rho * (th_i - th_j)
-        if self.consensus == "sigma":
+        if self.s.consensus == "sigma":
             return self.rho * a * (2 - a) * (th_i - th_j)
         return 2 * self.rho * a * (th_i - z)
 
