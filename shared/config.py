@@ -201,9 +201,12 @@ class LearnerSettings(Section):
         0.05, gt=0, le=1, description="sigma: a node's pull on a parameter stays within [this, 2 - this] x DiNNO's")
     exchange_every: int = Field(1, ge=1, description="exchange States every this many rounds; the rounds between train "
                                                      "against the neighbours' last States (rounds must be a multiple)")
+    exchange_every_s: float = Field(0.0, ge=0, description="exchange on a clock instead: send the State every this many "
+                                                         "seconds and train without waiting for anyone, taking the "
+                                                         "neighbours' States as they come (0: by rounds, Algorithm 1)")
     stale_rounds: int = Field(0, ge=0, description="keep pulling towards a neighbour's newest State for this many rounds "
                                                   "when no newer one comes (0: the rounds it was meant for only, i.e. "
-                                                  "exchange_every)")
+                                                  "exchange_every; on a clock, until the neighbour goes silent)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
     compression: Literal["none", "f16", "bf16", "topk", "sign", "quant"] = Field(
@@ -232,7 +235,10 @@ class LearnerSettings(Section):
                              "posterior; ramen works with either)")
         if self.consensus != "dinno" and self.algorithm != "dinno":
             raise ValueError(f"consensus {self.consensus} weighs DiNNO's consensus: it needs algorithm dinno")
-        if self.graph == "disk" and self.data == "online" and self.round_wait_s == 0:
+        if self.exchange_every_s > 0 and (self.algorithm != "dinno" or self.exchange_every != 1):
+            raise ValueError("exchange_every_s (exchange on a clock) runs DiNNO's update against the newest States: it "
+                             "needs algorithm dinno and exchange_every 1")
+        if self.graph == "disk" and self.data == "online" and self.round_wait_s == 0 and self.exchange_every_s == 0:
             raise ValueError("a disk graph with online data changes while the robots drive: set round_wait_s > 0 (a "
                              "neighbour out of range sends nothing the round could wait for)")
         if self.rounds % self.exchange_every:

@@ -214,9 +214,11 @@ class DinnoNode(LocalNode):
         self.mu_at, self.rho_at = sigma_pairs(model) if self.s.consensus == "sigma" else (None, None)
         self.counts = torch.zeros(self.param_count, device=self.device) if self.s.consensus == "ramen" else None
         # Each neighbour's newest State: (round it arrived, parameters, RAMEN counts); it keeps pulling
-        # for stale_rounds rounds (at least exchange_every) when no newer one comes.
+        # for stale_rounds rounds (at least exchange_every) when no newer one comes; on a clock
+        # (exchange_every_s), with stale_rounds 0, until a newer one comes or it is forgotten.
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
-        self.keep_for = max(settings.stale_rounds, settings.exchange_every)
+        timed = settings.exchange_every_s > 0 and settings.stale_rounds == 0
+        self.keep_for = settings.rounds + 1 if timed else max(settings.stale_rounds, settings.exchange_every)
 
     def state(self) -> np.ndarray:
         """[theta], or with RAMEN's consensus [theta, gradient counts]."""
@@ -323,6 +325,11 @@ class DinnoNode(LocalNode):
         if public is None:
             return own
         return torch.from_numpy(np.array(public[: self.param_count], dtype=np.float32)).to(self.device)
+
+    def forget(self, j: int) -> None:
+        """Stop pulling towards neighbour ``j``'s last State (it went silent); its dual is kept
+        aside, as for a lost link, for when it sends again."""
+        self.known.pop(j, None)
 
     def forget_stale(self, k: int) -> None:
         """Drop the neighbours' States that arrived ``keep_for`` rounds or more before round ``k``

@@ -19,6 +19,7 @@ A node with no neighbours in its graph trains alone.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import Counter, defaultdict
@@ -382,6 +383,96 @@ def run_algorithm1(node_id: int, neighbours: set[int], max_rounds: int, state: n
         if msg is not None and msg.kind == "state" and msg.sender in neighbours and msg.round == max_rounds:
             final[msg.sender] = msg.params
     stats.final_peers = dict(final)
+    return state
+
+
+TimedUpdate = Callable[[int, np.ndarray, dict[int, np.ndarray]], np.ndarray]
+
+
+def run_timed(node_id: int, neighbours: set[int], rounds: int, state: np.ndarray, node_update: TimedUpdate,
+              transport: Transport, every_s: float, *, start_round: int = 0, stats: ExchangeStats | None = None,
+              stop: threading.Event | None = None, check_state: StateCheck | None = None,
+              silent_after: float = 30.0, forget: Callable[[int], None] | None = None,
+              linger: float = 5.0) -> np.ndarray:
+    """Exchange on a clock (``learner.exchange_every_s``), as robots whose radios talk every
+    ``every_s`` seconds: run training rounds ``start_round .. rounds - 1`` back to back, never
+    waiting for anyone. Before a round, the node sends its State when ``every_s`` seconds have
+    passed since it last did (and before its first round), and takes every State that has
+    arrived meanwhile; ``node_update(round, state, fresh)`` gets the newest of each neighbour
+    that came since the last round (none in most rounds: the update then trains against the
+    States it already holds). No RoundComplete, no resends: a State lost is lost, the next one
+    comes ``every_s`` seconds later. The team's round numbers drift apart; a State older than
+    one already taken from the same neighbour (reordered) is ignored. ``check_state`` refuses
+    implausible States as in :func:`run_algorithm1`, except that the robots train apart between
+    exchanges: a State passes when it is plausible against this node's parameters or against any
+    neighbour's newest State taken, and before the node has taken any (it starts, or resumed
+    behind its team) only the tests that need no reference apply. A neighbour silent for ``silent_after``
+    seconds is forgotten (``forget(j)``: the update stops pulling towards its last State) until
+    it sends again; a node never fails for want of neighbours. After the last round the node
+    sends its final State (round ``rounds``) and waits up to ``linger`` seconds for its
+    neighbours' final States (``stats.final_peers``, with the newest State of any that has not
+    finished by then)."""
+    stats = stats if stats is not None else ExchangeStats()
+    newest: dict[int, tuple[int, np.ndarray]] = {}  # each neighbour's newest State taken: (round, vector)
+    heard: dict[int, float] = {}
+    forgotten: set[int] = set()
+    last_sent = -math.inf
+
+    def take(msg: Envelope, into: dict[int, np.ndarray], now: float) -> None:
+        j = msg.sender
+        if msg.kind != "state" or j not in neighbours or msg.round < newest.get(j, (-1, None))[0]:
+            return  # RoundCompletes (a node on round-based exchange), strangers, reordered older States
+        if check_state is not None:
+            # The team drifts apart between exchanges: near this node's parameters or any
+            # neighbour's newest is near enough. Before it has taken any State (starting, or
+            # resumed behind its team) a node cannot judge distances: finiteness only.
+            refs = [state, *(v for _, v in newest.values())] if newest else [None]
+            reasons = []
+            for ref in refs:
+                reasons.append(check_state(msg.params, ref))
+                if reasons[-1] is None:
+                    break
+            else:
+                refuse(stats, node_id, msg, reasons[0], "implausible")  # (why, against its own parameters)
+                return
+        if j in forgotten:
+            forgotten.discard(j)
+            stats.rejoined += 1
+            log.info("node %d: neighbour %d heard again at its round %d", node_id, j, msg.round)
+        newest[j] = (msg.round, msg.params)
+        heard[j] = now
+        into[j] = msg.params
+
+    for k in range(start_round, rounds):
+        if stop is not None and stop.is_set():
+            raise InterruptedError(f"node {node_id} stopped at round {k}")
+        now = time.monotonic()
+        if now - last_sent >= every_s:
+            t0 = time.perf_counter()
+            transport.send_state(k, state)
+            stats.send_s += time.perf_counter() - t0
+            last_sent = now
+        t0 = time.perf_counter()
+        fresh: dict[int, np.ndarray] = {}
+        while (msg := transport.receive(timeout=0.0)) is not None:
+            take(msg, fresh, time.monotonic())
+        stats.wait_s += time.perf_counter() - t0
+        for j in [j for j, t in heard.items() if j not in forgotten and now - t > silent_after]:
+            forgotten.add(j)
+            stats.left_out += 1
+            log.warning("node %d: neighbour %d has been silent for %.0f s; round %d goes on without its last State",
+                        node_id, j, now - heard[j], k)
+            if forget is not None:
+                forget(j)
+        state = node_update(k, state, dict(sorted(fresh.items())))
+        stats.rounds_done += 1
+    transport.send_state(rounds, state)
+    deadline = time.monotonic() + linger
+    while any(newest.get(j, (-1, None))[0] < rounds for j in neighbours - forgotten) and time.monotonic() < deadline:
+        msg = transport.receive(timeout=max(0.0, min(0.2, deadline - time.monotonic())))
+        if msg is not None:
+            take(msg, {}, time.monotonic())
+    stats.final_peers = {j: v for j, (_, v) in sorted(newest.items()) if j not in forgotten}
     return state
 
 

@@ -72,14 +72,15 @@ class FaultyTransport:
         return np.random.default_rng([self.f.seed, a, b, msg.round]).random() < self.f.link_success
 
     def receive(self, timeout: float) -> Envelope | None:
+        """The next message due, waiting up to ``timeout`` seconds (0: what has arrived)."""
         deadline = time.monotonic() + timeout
         while True:
             now = time.monotonic()
             if self.pending and self.pending[0][0] <= now:
                 return heapq.heappop(self.pending)[2]
-            if now >= deadline:
-                return None
-            wait = deadline - now if not self.pending else min(deadline, self.pending[0][0]) - now
-            msg = self.inner.receive(timeout=wait)
+            wait = max(0.0, deadline - now if not self.pending else min(deadline, self.pending[0][0]) - now)
+            msg = self.inner.receive(timeout=wait)  # (with no time left, still what the inner link holds)
             if msg is not None:
                 self._admit(msg)
+            elif time.monotonic() >= deadline:
+                return None

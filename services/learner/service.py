@@ -29,7 +29,15 @@ import torch
 
 from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.dinno import DinnoNode, DsgdNode, DsgtNode, consensus_error, validation_bce, warm_up
-from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, MemoryTransport, PeerFailure, implausible, run_algorithm1
+from swarmmap.services.learner.exchange import (
+    ExchangeStats,
+    MemoryHub,
+    MemoryTransport,
+    PeerFailure,
+    implausible,
+    run_algorithm1,
+    run_timed,
+)
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, dynamic_graph, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
@@ -123,6 +131,7 @@ class RobotLearner:
         self.start_round = 0
         self.start_state: np.ndarray | None = None
         self.resumed = False
+        self.latest: dict[int, np.ndarray] = {}  # on a clock: each neighbour's newest State
         self.final_state: np.ndarray | None = None
         self.before: dict[str, float] = {}  # counters of the runs this one resumes: metrics stay cumulative
         self.checkpoint_path = cfg.run_dir / "checkpoints" / f"robot-{robot}.pt" if cfg.run_dir is not None else None
@@ -270,24 +279,51 @@ class RobotLearner:
     def node_update(self, c: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """Algorithm 1's round ``c``: training rounds c E .. c E + E - 1 (E = exchange_every), the
         first with the neighbours' States of this exchange, the others against them as they were."""
-        s, e = self.s, self.s.exchange_every
-        every = s.checkpoint_every
-        if every and (c * e) % every < e and c != self.start_round and self.checkpoint_path is not None:
-            self.save_checkpoint(c, theta)
+        e = self.s.exchange_every
+        self.checkpoint_if_due(c, theta, (c * e) % self.s.checkpoint_every < e if self.s.checkpoint_every else False)
         for k in range(c * e, (c + 1) * e):
-            if s.data == "online":  # DiNNO's sliding window over the scans received so far
-                self.points, self.labels = self.collector.arrays(s.window_scans)
-                self.node.set_data(self.points, self.labels)
-            if k % s.eval_every == 0:
-                m = self.publish_metrics(k, theta, peers)
-                log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
-            t0 = time.perf_counter()
-            theta = self.node.update(k, theta, peers) if k == c * e else self.node.local_update(k, theta)
-            self.compute_s += time.perf_counter() - t0
-            if not all_finite(self.node.params_of(theta)):
-                raise LearnerError(f"robot {self.robot}: training diverged in round {k}: its parameters are no longer "
-                                   f"finite (settings too aggressive for this plan: lr_start {s.lr_start:g}, rho_init "
-                                   f"{s.rho_init:g}, consensus {s.consensus})", 6)
+            theta = self.train_round(k, theta, peers, exchange=k == c * e)
+        return theta
+
+    def timed_update(self, k: int, theta: np.ndarray, fresh: dict[int, np.ndarray]) -> np.ndarray:
+        """Training round ``k`` on a clock (``exchange_every_s``): an exchange round for the
+        neighbours whose States came since the last round, if any."""
+        self.latest.update(fresh)
+        self.checkpoint_if_due(k, theta, k % self.s.checkpoint_every == 0 if self.s.checkpoint_every else False)
+        return self.train_round(k, theta, self.latest, exchange=bool(fresh), fresh=fresh)
+
+    def checkpoint_if_due(self, c: int, theta: np.ndarray, due: bool) -> None:
+        """What Algorithm 1's round ``c`` starts from, when a checkpoint is due (not in the round
+        this learner resumed from: that one is on disk)."""
+        if due and c != self.start_round and self.checkpoint_path is not None:
+            self.save_checkpoint(c, theta)
+
+    def forget(self, j: int) -> None:
+        """Neighbour ``j`` went silent (on a clock): the update stops pulling towards its last State."""
+        self.latest.pop(j, None)
+        forget = getattr(self.node, "forget", None)
+        if forget is not None:
+            forget(j)
+
+    def train_round(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], exchange: bool,
+                    fresh: dict[int, np.ndarray] | None = None) -> np.ndarray:
+        """Training round ``k``: the round's metrics every ``eval_every`` rounds (consensus error
+        against ``peers``), then the node's update, with the neighbours' States that came
+        (``fresh``, default ``peers``) where ``exchange``, else against the States it holds."""
+        s = self.s
+        if s.data == "online":  # DiNNO's sliding window over the scans received so far
+            self.points, self.labels = self.collector.arrays(s.window_scans)
+            self.node.set_data(self.points, self.labels)
+        if k % s.eval_every == 0:
+            m = self.publish_metrics(k, theta, peers)
+            log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, m.val_bce, m.consensus_error)
+        t0 = time.perf_counter()
+        theta = self.node.update(k, theta, peers if fresh is None else fresh) if exchange else self.node.local_update(k, theta)
+        self.compute_s += time.perf_counter() - t0
+        if not all_finite(self.node.params_of(theta)):
+            raise LearnerError(f"robot {self.robot}: training diverged in round {k}: its parameters are no longer "
+                               f"finite (settings too aggressive for this plan: lr_start {s.lr_start:g}, rho_init "
+                               f"{s.rho_init:g}, consensus {s.consensus})", 6)
         return theta
 
     def train(self, transport, stop: threading.Event) -> None:
@@ -296,12 +332,18 @@ class RobotLearner:
         self.t_start = time.monotonic()
         try:
             start = self.node.state() if self.start_state is None else self.start_state
-            final = run_algorithm1(robot, self.neighbours, s.rounds // s.exchange_every, start, self.node_update, transport,
-                                   start_round=self.start_round, stats=self.stats, stop=stop,
-                                   peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
-                                   check_state=self.check_state, silent_after=s.silent_after_s,
-                                   rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s,
-                                   keep_rounds=-(-s.checkpoint_every // s.exchange_every) + 2, round_wait=s.round_wait_s)
+            if s.exchange_every_s > 0:
+                final = run_timed(robot, self.neighbours, s.rounds, start, self.timed_update, transport, s.exchange_every_s,
+                                  start_round=self.start_round, stats=self.stats, stop=stop, check_state=self.check_state,
+                                  silent_after=s.silent_after_s, forget=self.forget)
+            else:
+                final = run_algorithm1(robot, self.neighbours, s.rounds // s.exchange_every, start, self.node_update,
+                                       transport, start_round=self.start_round, stats=self.stats, stop=stop,
+                                       peer_timeout=s.peer_timeout_s, resend_after=s.resend_after_s,
+                                       check_state=self.check_state, silent_after=s.silent_after_s,
+                                       rejoin=self.node.rejoin, resumed=self.resumed, rejoin_wait=s.rejoin_wait_s,
+                                       keep_rounds=-(-s.checkpoint_every // s.exchange_every) + 2,
+                                       round_wait=s.round_wait_s)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
         ignored, unusable = getattr(transport, "ignored", 0), getattr(transport, "unusable", 0)  # (a StateCodec's)

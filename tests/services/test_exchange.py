@@ -6,11 +6,21 @@ from __future__ import annotations
 import logging
 import random
 import threading
+import time
+from collections import Counter
 
 import numpy as np
 import pytest
 
-from swarmmap.services.learner.exchange import Envelope, ExchangeStats, MemoryHub, PeerFailure, run_algorithm1
+from swarmmap.services.learner.exchange import (
+    Envelope,
+    ExchangeStats,
+    MemoryHub,
+    PeerFailure,
+    implausible,
+    run_algorithm1,
+    run_timed,
+)
 
 COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
 RING4 = {0: {1, 3}, 1: {0, 2}, 2: {1, 3}, 3: {2, 0}}
@@ -362,3 +372,101 @@ def test_a_neighbour_whose_every_state_is_refused_is_left_out_and_the_rounds_go_
     assert set(results) == {0, 1}
     assert all(s.left_out >= 1 and s.refused["implausible"] >= 1 for s in stats.values())
     assert "has sent only States this node refuses" in caplog.text
+
+
+def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):
+    """run_timed for every node of ``graph`` in threads; each round takes ``round_s`` of compute
+    (``rounds`` may be a dict: node -> its rounds). Returns results, stats, States sent per node."""
+    sent: Counter[int] = Counter()
+
+    def count(sender, receiver, env):
+        if env.kind == "state" and receiver == min(graph[sender]):
+            sent[sender] += 1
+        return 0.0
+
+    hub = MemoryHub(graph, count)
+    results, stats, errors = {}, {i: ExchangeStats() for i in graph}, {}
+
+    def update(k, theta, fresh):
+        threading.Event().wait(round_s)
+        return (theta + sum(fresh.values())) / (1 + len(fresh))
+
+    def node(i):
+        try:
+            n = rounds[i] if isinstance(rounds, dict) else rounds
+            results[i] = run_timed(i, graph[i], n, init[i], update, hub.transport(i), every_s, stats=stats[i],
+                                   linger=0.5, **kw)
+        except Exception as exc:  # re-raised by the test
+            errors[i] = exc
+
+    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, errors
+    return results, stats, sent
+
+
+def test_on_a_clock_nodes_send_every_t_seconds_never_wait_and_still_agree():
+    init = {i: np.full(4, 10.0 * i) for i in COMPLETE3}
+    t0 = time.monotonic()
+    results, stats, sent = run_clocked(COMPLETE3, 150, init, every_s=0.1)
+    elapsed = time.monotonic() - t0
+    for i in COMPLETE3:
+        # A State before the first round, then one every 0.1 s while training, and the final one:
+        # far fewer than one a round, and no round ever waited for a neighbour.
+        assert 3 <= sent[i] <= elapsed / 0.1 + 3, (sent[i], elapsed)
+        assert stats[i].rounds_done == 150
+        assert set(stats[i].final_peers) == COMPLETE3[i]
+    spread = np.ptp([results[i][0] for i in COMPLETE3])
+    assert spread < 1.0, results  # from 0, 10 and 20: mixing what came made them agree
+
+
+def test_on_a_clock_a_silent_neighbour_is_forgotten_and_the_others_go_on(caplog):
+    forgotten = []
+    init = {i: np.full(2, float(i)) for i in COMPLETE3}
+    with caplog.at_level(logging.WARNING, logger="learner"):
+        results, stats, _ = run_clocked(COMPLETE3, {0: 150, 1: 150, 2: 5}, init, every_s=0.05, silent_after=0.3,
+                                        forget=forgotten.append)
+    assert 2 in forgotten  # node 2 stopped after 5 rounds: 0 and 1 stopped pulling towards it
+    assert "neighbour 2 has been silent" in caplog.text
+    assert set(results) == {0, 1, 2} and stats[0].rounds_done == 150
+    assert 2 not in stats[0].final_peers
+
+
+def test_a_faulty_link_polled_without_waiting_still_delivers():
+    from swarmmap.services.learner.faults import FaultyTransport
+    from swarmmap.shared.config import FaultSettings
+
+    hub = MemoryHub(COMPLETE3)
+    link = FaultyTransport(hub.transport(0), 0, FaultSettings(link_success=1.0, duplicate=0.0))
+    hub.transport(1).send_state(0, np.ones(3))
+    msg = link.receive(timeout=0.0)
+    assert msg is not None and msg.sender == 1 and link.receive(timeout=0.0) is None
+
+
+def test_on_a_clock_states_near_the_team_pass_and_hostile_ones_are_refused():
+    """The robots train apart between exchanges: a State far from this node's parameters but near
+    a neighbour's newest passes; zeros, NaNs and a vector far from everyone are refused."""
+    hub = MemoryHub(COMPLETE3)
+    own = 1 + 0.1 * np.arange(8)
+    first, drifted = own + 2.0, own + 2.5  # node 1 trained apart: far from own, near its last
+    hub.transport(1).send_state(0, first)
+    hub.transport(2).send_state(1, np.zeros(8))
+    hub.transport(2).send_state(2, np.full(8, np.nan))
+    hub.transport(2).send_state(3, np.full(8, 40.0) + np.arange(8))
+    hub.transport(1).send_state(4, drifted)
+    taken = []
+
+    def update(k, theta, fresh):
+        taken.extend((j, float(v[0])) for j, v in fresh.items())
+        return theta
+
+    stats = ExchangeStats()
+    run_timed(0, {1, 2}, 1, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
+              check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
+    # Nothing taken yet: the first State passes on finiteness alone (node 0 might be the one behind);
+    # then node 1's drifted State is near its last, and node 2's are refused.
+    assert taken == [(1, 3.5)]  # (the newest of node 1: both came before the round)
+    assert sum(stats.refused.values()) == 3
