@@ -209,13 +209,15 @@ class LearnerSettings(Section):
                                                   "exchange_every; on a clock, until the neighbour goes silent)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
-    compression: Literal["none", "f16", "bf16", "topk", "sign", "quant"] = Field(
+    compression: Literal["none", "f16", "bf16", "topk", "sign", "quant", "lowrank"] = Field(
         "none", description="State encoding on the wire: float32, half precision, bfloat16, or differences with error "
-                            "feedback: top-k, the sign of every value with a scale per 256, or every value quantised "
-                            "to quant_bits with a step per 256")
+                            "feedback: top-k, the sign of every value with a scale per 256, every value quantised "
+                            "to quant_bits with a step per 256, or each weight matrix as a rank-lowrank_rank product")
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
     quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value before Huffman coding (2-8)")
-    keyframe_every: int = Field(100, ge=1, description="topk, sign, quant: every this many States, one carries the whole "
+    lowrank_rank: int = Field(1, ge=1, le=64, description="lowrank: rank of each weight matrix's update (PowerGossip; "
+                                                              "measured to lose consensus under Adam: see README)")
+    keyframe_every: int = Field(100, ge=1, description="topk, sign, quant, lowrank: every this many States, one carries the whole "
                                                        "vector (quant: at 16 bits)")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")

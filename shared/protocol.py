@@ -237,8 +237,8 @@ class Samples(Message):
         return self
 
 
-STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign", "quant")
-CHAINED_ENCODINGS = ("topk", "sign", "quant")  # each such State adds to the sender's previous one
+STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign", "quant", "lowrank")
+CHAINED_ENCODINGS = ("topk", "sign", "quant", "lowrank")  # each such State adds to the sender's previous one
 SCALE_CHUNK = 256  # values per scale of a sign or quant State
 
 
@@ -263,6 +263,12 @@ class State(Message):
       (c - 2^(bits-1) + 1) x the step in ``scales`` (``<f4``) of its run of SCALE_CHUNK values.
       Without ``base``, the State is a key frame: the codes stand for the vector itself. A
       stream that does not inflate to exactly ``size`` such codes is refused by the receiver.
+    - ``lowrank``: the same chain, each weight matrix's update as a product of two thin
+      factors (PowerGossip-like): ``blocks`` lists [offset, rows, cols, rank] per matrix
+      (row-major at ``offset`` in the vector, by increasing offset, not overlapping, rank at
+      most min(rows, cols)); ``params`` (``<f4``) holds, block by block, P (rows x rank) then
+      Q (cols x rank), row-major, the update being P Q^T; then the update of every value no
+      block covers, in order.
 
     ``position`` [x, y] (m), where the sender's robot is, comes with a dynamic disk graph
     (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it."""
@@ -279,22 +285,40 @@ class State(Message):
     position: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)] | None = None
     scales: Tensor | None = None
     bits: Annotated[int, Field(ge=2, le=16)] | None = None
+    blocks: Annotated[list[Annotated[list[Annotated[int, Field(ge=0, lt=1 << 30)]], Field(min_length=4, max_length=4)]],
+                      Field(max_length=4096)] | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
-        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1", "quant": "|u1"}[self.encoding]
+        dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1", "quant": "|u1",
+                 "lowrank": "<f4"}[self.encoding]
         _require(self.params, "params", dtype, 1)
         if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
             raise ValueError("params: non-finite values")
         chained = self.encoding in CHAINED_ENCODINGS
         if (self.bits is not None) != (self.encoding == "quant"):
             raise ValueError("bits belong to quant States, and every quant State has them")
+        if (self.blocks is not None) != (self.encoding == "lowrank"):
+            raise ValueError("blocks belong to lowrank States, and every lowrank State has them")
         if not chained:
             if any(x is not None for x in (self.indices, self.size, self.base, self.scales)):
                 raise ValueError(f"indices, size, base and scales belong to chained States, not {self.encoding}")
             return self
         if self.size is None or self.seq is None or (self.base is None and self.encoding != "quant"):
             raise ValueError(f"a {self.encoding} State needs size, seq and base")
+        if self.encoding == "lowrank":
+            if self.indices is not None or self.scales is not None:
+                raise ValueError("a lowrank State has no indices or scales")
+            values, end = self.size, 0
+            for offset, rows, cols, rank in self.blocks:
+                if offset < end or rows * cols > self.size - offset or not 1 <= rank <= min(rows, cols):
+                    raise ValueError(f"lowrank block [{offset}, {rows}, {cols}, {rank}] overlaps another, runs past size "
+                                     f"{self.size} or has a rank outside 1..min(rows, cols)")
+                end = offset + rows * cols
+                values += rank * (rows + cols) - rows * cols
+            if self.params.shape[0] != values:
+                raise ValueError(f"a lowrank State of size {self.size} with these blocks needs {values} values")
+            return self
         if self.encoding in ("sign", "quant"):
             if self.indices is not None or self.scales is None:
                 raise ValueError(f"a {self.encoding} State needs scales and no indices")

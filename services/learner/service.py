@@ -447,11 +447,22 @@ def links(transport, learner: RobotLearner) -> StateCodec:
     if any_faults(cfg.faults):
         transport = FaultyTransport(transport, robot, cfg.faults)
     dynamic = dynamic_graph(s)
-    compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits)
+    compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank,
+                            weight_matrices(learner.node.model))
     if s.compression in CHAINED_ENCODINGS:
         learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
     return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
                       position=(lambda: learner.collector.position) if dynamic else None)
+
+
+def weight_matrices(model: torch.nn.Module) -> list[tuple[int, int, int]]:
+    """(offset, rows, cols) of each 2-D parameter in the flat parameter vector (lowrank States)."""
+    out, at = [], 0
+    for p in model.parameters():
+        if p.dim() == 2:
+            out.append((at, int(p.shape[0]), int(p.shape[1])))
+        at += p.numel()
+    return out
 
 
 def train_centralized(learners: list[RobotLearner], stop: threading.Event) -> None:

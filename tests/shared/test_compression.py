@@ -51,9 +51,12 @@ def test_f16_sends_float32_when_values_exceed_half_precision(caplog):
     assert Decompressor().vector(wire(fields)[0]).tolist() == [1.0, 1e6]
 
 
-@pytest.mark.parametrize("mode", ["topk", "sign", "quant"])
+MATRICES = [(0, 50, 80), (4000, 100, 40), (8000, 40, 45)]  # three weight matrices of a 10,000-value vector
+
+
+@pytest.mark.parametrize("mode", ["topk", "sign", "quant", "lowrank"])
 def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mode):
-    c, d = Compressor(mode, density=0.02, keyframe_every=1000), Decompressor()
+    c, d = Compressor(mode, density=0.02, keyframe_every=1000, rank=2, matrices=MATRICES), Decompressor()
     sent = 0
     for v in vectors():
         back = d.vector(wire(c.fields(v))[0])
@@ -68,6 +71,8 @@ def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mod
         np.testing.assert_allclose(back, v, atol=1e-6)
     elif mode == "quant":  # each State takes a third of what is still owed, or more: the copy converges
         np.testing.assert_allclose(back, v, atol=1e-5)
+    elif mode == "lowrank":  # each power iteration takes the largest of what is owed: the copy closes in
+        assert np.abs(back - v).max() < 0.5 * gap
     else:  # each sign step moves every value by its run's mean gap: it closes in, then dithers at a tiny scale
         assert np.abs(back - v).max() < gap and np.abs(back - v).mean() < 2e-3
 
@@ -80,6 +85,48 @@ def test_chained_modes_send_a_tenth_of_the_bytes_or_less(mode, density, ratio):
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
         compressed += wire(c.fields(v))[1]
     assert plain / compressed > ratio
+
+
+def test_lowrank_carries_low_rank_drift_whole_at_about_a_tenth_of_the_bytes():
+    """A layer's gradient steps are sums of a few outer products: rank-2 factors carry such drift
+    (and the biases between matrices go whole), so the receivers' copy stays within float
+    rounding of the vector."""
+    rng = np.random.default_rng(3)
+    v = rng.standard_normal(10_000).astype(np.float32)
+    c, d = Compressor("lowrank", keyframe_every=100, rank=2, matrices=MATRICES), Decompressor()
+    plain = compressed = 0
+    for step in range(100):
+        for offset, rows, cols in MATRICES:
+            u, w = rng.standard_normal((rows, 2)), rng.standard_normal((cols, 2))
+            v[offset : offset + rows * cols] += (0.01 * u @ w.T).astype(np.float32).reshape(-1)
+        v[9900:9910] += 0.01  # biases (no block covers them)
+        fields = c.fields(v)
+        back = d.vector(wire(fields)[0])
+        plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
+        compressed += wire(fields)[1]
+        if step:
+            assert fields["encoding"] == "lowrank" and [b[3] for b in fields["blocks"]] == [2, 2, 2]
+    np.testing.assert_array_equal(back, c.replica)
+    np.testing.assert_allclose(back, v, atol=1e-3)
+    assert plain / compressed > 8  # (9.7: 910 values a State instead of 10,000, and a key frame)
+
+
+@pytest.mark.parametrize("blocks, why", [
+    ([[0, 4, 5, 1], [10, 4, 5, 1]], "overlaps another"),
+    ([[0, 4, 5, 1], [20, 4, 5, 1]], "runs past size"),
+    ([[0, 4, 5, 0]], "rank outside"),
+    ([[0, 4, 5, 5]], "rank outside"),
+    ([[0, 4, 5, 2]], "needs 28 values"),
+])
+def test_hostile_lowrank_states_are_refused(blocks, why):
+    fields = {"encoding": "lowrank", "params": Tensor.of(np.ones(19, np.float32)), "size": 30, "seq": 1, "base": 0,
+              "blocks": [[0, 4, 5, 1]]}
+    doc = State(run=RUN, sender=1, round=0, **fields).model_dump(mode="python", exclude_none=True)
+    doc["blocks"] = blocks
+    import msgpack
+
+    with pytest.raises(ProtocolError, match=why):
+        decode(msgpack.packb(doc, use_bin_type=True), State, run=RUN)
 
 
 def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
