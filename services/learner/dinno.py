@@ -231,14 +231,13 @@ class DinnoNode(LocalNode):
 
     def checkpoint(self) -> dict:
         doc = super().checkpoint()
-        doc.update(duals={j: d.cpu() for j, d in self.duals.items()}, rho=self.rho, heard=dict(self.heard),
+        doc.update(duals={j: d.cpu() for j, d in self.duals.items()}, rho=self.rho,
                    optimizers=None if self.optimizers is None else [o.state_dict() for o in self.optimizers])
         return doc
 
     def restore(self, doc: dict) -> None:
         super().restore(doc)
         self.duals = {int(j): d.to(self.device) for j, d in doc["duals"].items()}
-        self.heard = {int(j): int(k) for j, k in doc.get("heard", {}).items()}
         self.rho = doc["rho"]
         if self.optimizers is not None and doc.get("optimizers") is not None:
             for opt, state in zip(self.optimizers, doc["optimizers"]):
