@@ -207,9 +207,6 @@ class LearnerSettings(Section):
     stale_rounds: int = Field(0, ge=0, description="keep pulling towards a neighbour's newest State for this many rounds "
                                                   "when no newer one comes (0: the rounds it was meant for only, i.e. "
                                                   "exchange_every; on a clock, until the neighbour goes silent)")
-    dual_keep_rounds: int = Field(50, ge=0, description="poor links: a link's dual stays in the node's objective for "
-                                                      "this many rounds after its neighbour's last State (0: only in "
-                                                      "rounds a State of it is held)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
     compression: Literal["none", "f16", "bf16", "topk", "sign", "quant", "lowrank"] = Field(

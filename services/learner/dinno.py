@@ -219,10 +219,6 @@ class DinnoNode(LocalNode):
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
         timed = settings.exchange_every_s > 0 and settings.stale_rounds == 0
         self.keep_for = settings.rounds + 1 if timed else max(settings.stale_rounds, settings.exchange_every)
-        # The round each neighbour's newest State arrived in: a link's dual stays in the objective
-        # for dual_keep_rounds after it (a link down for some rounds keeps its share of the node's
-        # dual), then is kept aside (a neighbour gone: its end of the link is gone too).
-        self.heard: dict[int, int] = {}
 
     def state(self) -> np.ndarray:
         """[theta], or with RAMEN's consensus [theta, gradient counts]."""
@@ -288,7 +284,6 @@ class DinnoNode(LocalNode):
             stj = torch.from_numpy(np.stack(list(peers.values()))).to(self.device)
             for row, j in enumerate(peers):
                 self.known[j] = (k, stj[row, :n], stj[row, n:] if self.counts is not None else None)
-                self.heard[j] = k
         self._primal(k, fresh=peers.keys())
         return self.state()
 
@@ -335,7 +330,6 @@ class DinnoNode(LocalNode):
         """Stop pulling towards neighbour ``j``'s last State (it went silent); its dual is kept
         aside, as for a lost link, for when it sends again."""
         self.known.pop(j, None)
-        self.heard.pop(j, None)
 
     def forget_stale(self, k: int) -> None:
         """Drop the neighbours' States that arrived ``keep_for`` rounds or more before round ``k``
@@ -348,7 +342,7 @@ class DinnoNode(LocalNode):
         against an outdated State), then ``primal_iterations`` optimizer steps on the loss plus
         the consensus terms of the neighbours whose newest State is at most ``keep_for`` rounds old."""
         self.forget_stale(k)
-        th_reg = a = None
+        th_reg = a = duals = None
         if self.known:
             ids = sorted(self.known)
             thj = torch.stack([self.known[j][1] for j in ids])
@@ -359,12 +353,7 @@ class DinnoNode(LocalNode):
                 if j in fresh:
                     step = self.dual_step(th_i, thj[row], th_reg[row], None if a is None else a[row])
                     self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
-        # The node's dual: every link heard from within dual_keep_rounds, not only the links whose
-        # States it holds (with links up 30% of rounds, the sum over those alone swung by a whole
-        # link's dual from round to round, and vanished in rounds that heard nobody).
-        keep = max(self.s.dual_keep_rounds, self.keep_for)
-        live = [self.duals[j] for j in sorted(self.duals) if j in self.known or k - self.heard.get(j, -keep) < keep]
-        duals = torch.stack(live).sum(0) if live else None
+            duals = torch.stack([self.duals[j] for j in ids]).sum(0)  # the links this node hears from
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])
         if self.optimizers is None:
             optimizers = self._optimizers(lr)
@@ -382,11 +371,9 @@ class DinnoNode(LocalNode):
                 bce, loss = self.batch_terms()
                 bce.backward()
                 self.counts += torch.cat([(p.grad != 0).reshape(-1) for p in self.model.parameters()]).float()
-            if duals is not None or th_reg is not None:
+            if th_reg is not None:
                 th = torch.nn.utils.parameters_to_vector(self.model.parameters())
-                extra = torch.dot(th, duals) if duals is not None else 0
-                if th_reg is not None:
-                    extra = extra + self.consensus_penalty(th, th_reg, a)
+                extra = torch.dot(th, duals) + self.consensus_penalty(th, th_reg, a)
                 loss = extra if loss is None else loss + extra
             if loss is not None:
                 loss.backward()  # one backward of the sum: both groups' gradients before either step
