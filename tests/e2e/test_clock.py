@@ -13,7 +13,7 @@ import pytest
 from swarmmap.shared.models import load_model
 from tests.harness import kill_at_round, leftovers, up
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.faults]  # a fault trial (a learner killed): the faults tier
 
 ROUNDS = 60
 
