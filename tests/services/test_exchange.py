@@ -54,23 +54,30 @@ def reference(graph, rounds, init):
     return thetas
 
 
-def run_threads(graph, rounds, init, delay=None, **kw):
-    hub = MemoryHub(graph, delay)
+def in_threads(graph, body, timeout=60):
+    """``body(i)`` for every node of ``graph``, each in a thread of its own: what each returned
+    and what each raised (for the test to check)."""
     results, errors = {}, {}
 
     def node(i):
         try:
-            results[i] = run_algorithm1(i, graph[i], rounds, init[i], mixing_update(i), hub.transport(i),
-                                        peer_timeout=kw.get("peer_timeout", 20), resend_after=0.2, linger=0.5)
-        except Exception as exc:  # collected and re-raised by the test
+            results[i] = body(i)
+        except Exception as exc:  # collected for the test
             errors[i] = exc
 
     threads = [threading.Thread(target=node, args=(i,)) for i in graph]
     for t in threads:
         t.start()
     for t in threads:
-        t.join(60)
+        t.join(timeout)
     return results, errors
+
+
+def run_threads(graph, rounds, init, delay=None, **kw):
+    hub = MemoryHub(graph, delay)
+    return in_threads(graph, lambda i: run_algorithm1(i, graph[i], rounds, init[i], mixing_update(i), hub.transport(i),
+                                                      peer_timeout=kw.get("peer_timeout", 20), resend_after=0.2,
+                                                      linger=0.5))
 
 
 @pytest.mark.parametrize("graph", [COMPLETE3, RING4], ids=["complete", "ring"])
@@ -385,25 +392,17 @@ def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):
         return 0.0
 
     hub = MemoryHub(graph, count)
-    results, stats, errors = {}, {i: ExchangeStats() for i in graph}, {}
+    stats = {i: ExchangeStats() for i in graph}
 
     def update(k, theta, fresh):
         threading.Event().wait(round_s)
         return (theta + sum(fresh.values())) / (1 + len(fresh))
 
     def node(i):
-        try:
-            n = rounds[i] if isinstance(rounds, dict) else rounds
-            results[i] = run_timed(i, graph[i], n, init[i], update, hub.transport(i), every_s, stats=stats[i],
-                                   linger=0.5, **kw)
-        except Exception as exc:  # re-raised by the test
-            errors[i] = exc
+        n = rounds[i] if isinstance(rounds, dict) else rounds
+        return run_timed(i, graph[i], n, init[i], update, hub.transport(i), every_s, stats=stats[i], linger=0.5, **kw)
 
-    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60)
+    results, errors = in_threads(graph, node)
     assert not errors, errors
     return results, stats, sent
 

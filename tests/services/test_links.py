@@ -15,7 +15,7 @@ from swarmmap.services.learner.faults import FaultyTransport
 from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import FaultSettings
 
-from .test_exchange import COMPLETE3, mixing_update, reference
+from .test_exchange import COMPLETE3, in_threads, mixing_update, reference
 
 
 def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, faults=None, round_wait=0.0,
@@ -24,7 +24,7 @@ def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, 
     by a StateCodec; returns results, stats, the hub and what each node put on the wire."""
     hub = MemoryHub(graph, run="links")
     wire_rounds: dict[int, list[int]] = {i: [] for i in graph}
-    results, stats, errors = {}, {i: ExchangeStats() for i in graph}, {}
+    stats = {i: ExchangeStats() for i in graph}
 
     def node(i):
         inner = hub.transport(i)
@@ -33,17 +33,10 @@ def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, 
         inner.send_fields = lambda r, f: (wire_rounds[i].append(r), spy_fields(r, f))
         link = FaultyTransport(inner, i, faults) if faults is not None else inner
         codec = StateCodec(link, i, Compressor(compression, density, keyframe_every=10), every)
-        try:
-            results[i] = run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i],
-                                        resend_after=0.2, linger=0.5, round_wait=round_wait, peer_timeout=20)
-        except Exception as exc:  # re-raised by the test
-            errors[i] = exc
+        return run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i], resend_after=0.2,
+                              linger=0.5, round_wait=round_wait, peer_timeout=20)
 
-    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout)
+    results, errors = in_threads(graph, node, timeout)
     assert not errors, errors
     return results, stats, hub, wire_rounds
 
