@@ -14,6 +14,9 @@ round finishes with the neighbours the node has; it is taken back when it sends 
 round at hand; a node that restarts behind its team catches up to the team's round. Only a
 node left with no neighbour at all for ``peer_timeout`` seconds stops, with :class:`PeerFailure`.
 A node with no neighbours in its graph trains alone.
+
+:func:`run_timed` is the other way to exchange (``learner.exchange_every_s``): on a clock,
+never waiting, taking the neighbours' States as they come.
 """
 
 from __future__ import annotations
@@ -406,9 +409,9 @@ def run_timed(node_id: int, neighbours: set[int], rounds: int, state: np.ndarray
     implausible States as in :func:`run_algorithm1`, except that the robots train apart between
     exchanges: a State passes when it is plausible against this node's parameters or against any
     neighbour's newest State taken, and before the node has taken any (it starts, or resumed
-    behind its team) only the tests that need no reference apply. A neighbour silent for ``silent_after``
-    seconds is forgotten (``forget(j)``: the update stops pulling towards its last State) until
-    it sends again; a node never fails for want of neighbours. After the last round the node
+    behind its team) only the tests that need no reference apply. A neighbour silent for
+    ``silent_after`` seconds is forgotten (``forget(j)``: the update stops pulling towards its
+    last State) until it sends again; a node never fails for want of neighbours. After the last round the node
     sends its final State (round ``rounds``) and waits up to ``linger`` seconds for its
     neighbours' final States (``stats.final_peers``, with the newest State of any that has not
     finished by then)."""
