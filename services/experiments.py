@@ -163,7 +163,18 @@ def same_settings(run_dir: Path, cfg: RunConfig) -> bool:
     from swarmmap.services.launcher import prepare
 
     new = prepare(cfg.model_copy(update={"run_dir": run_dir})).model_dump(mode="json")  # as up writes it
-    return isinstance(old, dict) and all(old.get(k) == new[k] for k in SAME_RUN)
+    if not isinstance(old, dict):
+        return False
+    defaults = RunConfig().model_dump(mode="json")
+
+    def as_then(k: str):
+        """The run's section ``k``, with the fields added since it ran at their defaults (what it ran with)."""
+        value = old.get(k)
+        if isinstance(value, dict) and isinstance(new[k], dict):
+            return {f: value.get(f, defaults[k].get(f)) for f in new[k]}
+        return value
+
+    return all(as_then(k) == new[k] for k in SAME_RUN)
 
 
 def finished(run_dir: Path) -> bool:
