@@ -447,25 +447,28 @@ def test_a_faulty_link_polled_without_waiting_still_delivers():
 
 def test_on_a_clock_states_near_the_team_pass_and_hostile_ones_are_refused():
     """The robots train apart between exchanges: a State far from this node's parameters but near
-    a neighbour's newest passes; zeros, NaNs and a vector far from everyone are refused."""
+    a neighbour's newest passes; zeros, NaNs and a vector far from everyone are refused, and of a
+    flood only each sender's newest is judged."""
     hub = MemoryHub(COMPLETE3)
     own = 1 + 0.1 * np.arange(8)
     first, drifted = own + 2.0, own + 2.5  # node 1 trained apart: far from own, near its last
+    hostile = [np.zeros(8), np.full(8, np.nan), np.full(8, 40.0) + np.arange(8)]
     hub.transport(1).send_state(0, first)
-    hub.transport(2).send_state(1, np.zeros(8))
-    hub.transport(2).send_state(2, np.full(8, np.nan))
-    hub.transport(2).send_state(3, np.full(8, 40.0) + np.arange(8))
-    hub.transport(1).send_state(4, drifted)
     taken = []
 
-    def update(k, theta, fresh):
+    def update(k, theta, fresh):  # what arrives while round k trains is taken before round k + 1
         taken.extend((j, float(v[0])) for j, v in fresh.items())
+        if k < len(hostile):
+            for r in range(5):  # a flood: the newest counts
+                hub.transport(2).send_state(10 * k + r, hostile[k])
+        if k == len(hostile) - 1:
+            hub.transport(1).send_state(4, drifted)
         return theta
 
     stats = ExchangeStats()
-    run_timed(0, {1, 2}, 1, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
+    run_timed(0, {1, 2}, 4, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
               check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
     # Nothing taken yet: the first State passes on finiteness alone (node 0 might be the one behind);
-    # then node 1's drifted State is near its last, and node 2's are refused.
-    assert taken == [(1, 3.5)]  # (the newest of node 1: both came before the round)
+    # then node 1's drifted State is near its last, and node 2's are refused, one a round.
+    assert taken == [(1, 3.0), (1, 3.5)]
     assert sum(stats.refused.values()) == 3
