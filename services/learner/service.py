@@ -280,7 +280,7 @@ class RobotLearner:
         """Algorithm 1's round ``c``: training rounds c E .. c E + E - 1 (E = exchange_every), the
         first with the neighbours' States of this exchange, the others against them as they were."""
         e = self.s.exchange_every
-        self.checkpoint_if_due(c, theta, (c * e) % self.s.checkpoint_every < e if self.s.checkpoint_every else False)
+        self.checkpoint_if_due(c, theta)
         for k in range(c * e, (c + 1) * e):
             theta = self.train_round(k, theta, peers, exchange=k == c * e)
         return theta
@@ -289,21 +289,21 @@ class RobotLearner:
         """Training round ``k`` on a clock (``exchange_every_s``): an exchange round for the
         neighbours whose States came since the last round, if any."""
         self.latest.update(fresh)
-        self.checkpoint_if_due(k, theta, k % self.s.checkpoint_every == 0 if self.s.checkpoint_every else False)
+        self.checkpoint_if_due(k, theta)  # (on a clock exchange_every is 1: Algorithm 1's rounds are training rounds)
         return self.train_round(k, theta, self.latest, exchange=bool(fresh), fresh=fresh)
 
-    def checkpoint_if_due(self, c: int, theta: np.ndarray, due: bool) -> None:
-        """What Algorithm 1's round ``c`` starts from, when a checkpoint is due (not in the round
-        this learner resumed from: that one is on disk)."""
-        if due and c != self.start_round and self.checkpoint_path is not None:
+    def checkpoint_if_due(self, c: int, theta: np.ndarray) -> None:
+        """What Algorithm 1's round ``c`` starts from, when its training rounds c E .. c E + E - 1
+        pass a multiple of ``checkpoint_every`` (not in the round this learner resumed from: that
+        one is on disk)."""
+        every, e = self.s.checkpoint_every, self.s.exchange_every
+        if every and (c * e) % every < e and c != self.start_round and self.checkpoint_path is not None:
             self.save_checkpoint(c, theta)
 
     def forget(self, j: int) -> None:
         """Neighbour ``j`` went silent (on a clock): the update stops pulling towards its last State."""
         self.latest.pop(j, None)
-        forget = getattr(self.node, "forget", None)
-        if forget is not None:
-            forget(j)
+        self.node.forget(j)  # (a DinnoNode: a clock needs algorithm dinno)
 
     def train_round(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], exchange: bool,
                     fresh: dict[int, np.ndarray] | None = None) -> np.ndarray:
