@@ -154,9 +154,8 @@ class Compressor:
                   "bits": bits, "size": int(diff.size), "seq": self.seq}
         return fields if base is None else {**fields, "base": base}
 
-
     def _lowrank(self, diff: np.ndarray) -> dict:
-        parts, rest = [], np.ones(diff.size, bool)
+        parts = []
         blocks = [b for b in self.blocks if b[0] + b[1] * b[2] <= diff.size]
         for offset, rows, cols, rank in blocks:
             m = diff[offset : offset + rows * cols].reshape(rows, cols).astype(np.float64)
@@ -169,8 +168,7 @@ class Compressor:
             self.q[offset] = q
             p32, q32 = p.astype(np.float32), q.astype(np.float32)
             parts += [p32.reshape(-1), q32.reshape(-1)]
-            rest[offset : offset + rows * cols] = False
-        values = np.concatenate([*parts, diff[rest]]).astype(np.float32)
+        values = np.concatenate([*parts, diff[uncovered(blocks, diff.size)]]).astype(np.float32)
         self.replica += lowrank_update(values, blocks, diff.size)
         return {"encoding": "lowrank", "params": Tensor.of(values, "<f4"), "blocks": [list(b) for b in blocks],
                 "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
@@ -180,16 +178,22 @@ def lowrank_update(values: np.ndarray, blocks, size: int) -> np.ndarray:
     """The update a lowrank State's ``values`` stand for: each block's P Q^T (formed in float64,
     so that sender and receivers round alike), then the plain differences everywhere else."""
     out = np.empty(size, np.float32)
-    rest = np.ones(size, bool)
     at = 0
     for offset, rows, cols, rank in blocks:
         p = values[at : at + rows * rank].reshape(rows, rank).astype(np.float64)
         q = values[at + rows * rank : at + (rows + cols) * rank].reshape(cols, rank).astype(np.float64)
         at += (rows + cols) * rank
         out[offset : offset + rows * cols] = (p @ q.T).astype(np.float32).reshape(-1)
-        rest[offset : offset + rows * cols] = False
-    out[rest] = values[at:]
+    out[uncovered(blocks, size)] = values[at:]
     return out
+
+
+def uncovered(blocks, size: int) -> np.ndarray:
+    """Which of a vector's ``size`` values no lowrank block covers (they travel as they are)."""
+    rest = np.ones(size, bool)
+    for offset, rows, cols, _ in blocks:
+        rest[offset : offset + rows * cols] = False
+    return rest
 
 
 def _runs(values: np.ndarray) -> np.ndarray:
