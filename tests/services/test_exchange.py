@@ -194,18 +194,10 @@ def test_hostile_and_far_future_states_are_refused_and_the_rounds_go_on():
     for k in (0, 1, 2):
         hub.queues[0].put(Envelope("state", 1, k, np.zeros(8)))
     hub.queues[0].put(Envelope("state", 1, 10_000, np.ones(8)))
-    stats, results = ExchangeStats(), {}
-
-    def node(i):
-        results[i] = run_algorithm1(i, graph[i], 8, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
-                                    linger=0.5, stats=stats if i == 0 else None,
-                                    check_state=lambda theirs, own: implausible(theirs, own, 0.5))
-
-    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60)
+    stats = ExchangeStats()
+    results, _ = in_threads(graph, lambda i: run_algorithm1(
+        i, graph[i], 8, init[i], mixing_update(i), hub.transport(i), resend_after=0.2, linger=0.5,
+        stats=stats if i == 0 else None, check_state=lambda theirs, own: implausible(theirs, own, 0.5)))
     np.testing.assert_array_equal(results[0], ref[0])
     assert stats.refused["implausible"] == 3 and stats.refused["far-future"] == 1
 
@@ -220,16 +212,8 @@ def test_faulty_links_lose_duplicate_and_reorder_yet_the_result_is_the_reference
     graph, init = COMPLETE3, {i: np.full(4, float(i)) for i in COMPLETE3}
     hub = MemoryHub(graph)
     transports = {i: FaultyTransport(hub.transport(i), i, faults) for i in graph}
-    results = {}
-
-    def node(i):
-        results[i] = run_algorithm1(i, graph[i], 12, init[i], mixing_update(i), transports[i], resend_after=0.05, linger=0.5)
-
-    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(120)
+    results, _ = in_threads(graph, lambda i: run_algorithm1(i, graph[i], 12, init[i], mixing_update(i), transports[i],
+                                                          resend_after=0.05, linger=0.5), timeout=120)
     ref = reference(graph, 12, init)
     for i in graph:
         np.testing.assert_allclose(results[i], ref[i], rtol=0, atol=1e-12)
@@ -322,20 +306,14 @@ def test_a_node_busy_computing_longer_than_silent_after_does_not_leave_out_its_n
     graph, rounds = COMPLETE3, 6
     init = {i: np.full(4, float(i)) for i in graph}
     hub = MemoryHub(graph)
-    results, stats = {}, {i: ExchangeStats() for i in graph}
+    stats = {i: ExchangeStats() for i in graph}
 
     def slow_first(i):
         return slowed_update(i, lambda k: 1.0 + 0.3 * i if k == 0 else 0.0)  # > silent_after, and not all alike
 
-    def node(i):
-        results[i] = run_algorithm1(i, graph[i], rounds, init[i], slow_first(i), hub.transport(i), stats=stats[i],
-                                    resend_after=5.0, linger=0.5, silent_after=0.6, peer_timeout=30)
-
-    threads = [threading.Thread(target=node, args=(i,)) for i in graph]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(30)
+    results, _ = in_threads(graph, lambda i: run_algorithm1(
+        i, graph[i], rounds, init[i], slow_first(i), hub.transport(i), stats=stats[i], resend_after=5.0, linger=0.5,
+        silent_after=0.6, peer_timeout=30), timeout=30)
     assert sorted(results) == [0, 1, 2]
     assert [stats[i].left_out for i in graph] == [0, 0, 0], "a busy node took its neighbours for gone"
     ref = reference(graph, rounds, init)

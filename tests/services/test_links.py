@@ -3,7 +3,6 @@ exchanged every few rounds, and rounds that go on without the States that do not
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -140,17 +139,10 @@ def test_a_dynamic_disk_graph_hears_only_the_neighbours_in_range():
         return step
 
     init = init_vectors(COMPLETE3, 16)
-    results, stats = {}, {i: ExchangeStats() for i in COMPLETE3}
-
-    def node(i):
-        results[i] = run_algorithm1(i, COMPLETE3[i], 6, init[i], update(i), codecs[i], stats=stats[i], round_wait=0.1,
-                                    resend_after=5, linger=0.2)
-
-    threads = [threading.Thread(target=node, args=(i,)) for i in COMPLETE3]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(30)
+    stats = {i: ExchangeStats() for i in COMPLETE3}
+    results, _ = in_threads(COMPLETE3, lambda i: run_algorithm1(i, COMPLETE3[i], 6, init[i], update(i), codecs[i],
+                                                                stats=stats[i], round_wait=0.1, resend_after=5,
+                                                                linger=0.2), timeout=30)
     assert seen == {0: {1}, 1: {0}, 2: set()}
     assert codecs[2].ignored > 0 and codecs[0].ignored > 0
     assert len(results) == 3 and all(s.left_out == 0 for s in stats.values())
