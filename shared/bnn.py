@@ -238,3 +238,31 @@ def _predict_deterministic(model: nn.Module, points: np.ndarray, batch: int, dev
         xy = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=device)
         out.append(model(xy).float().cpu().numpy())
     return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+
+def sampled_logits(model: BayesNet, xy: torch.Tensor, samples: int, generator: torch.Generator | None) -> torch.Tensor:
+    """Pre-sigmoid outputs (S, N) of ``samples`` weight draws at points ``xy`` (N, 2), with their
+    gradients (training's counterpart of :class:`MapPlan`: the same draws, no reused buffers)."""
+    layers = list(model.seq)
+    first = next(i for i, m in enumerate(layers) if isinstance(m, BayesLinear))
+    h = nn.Sequential(*layers[:first])(xy - model.centre).unsqueeze(0).expand(samples, -1, -1)
+    for m in layers[first:]:
+        if isinstance(m, BayesLinear):
+            w, b = sample_weights(m, samples, generator)
+            h = torch.baddbmm(b, h, w)
+        else:
+            h = m(h)
+    return h.squeeze(-1)
+
+
+def function_prior_kl(logits: torch.Tensor, prior_std: float) -> torch.Tensor:
+    """A noise-contrastive prior's term (Hafner et al., "Noise Contrastive Priors for Functional
+    Uncertainty", 2019), for points away from the data: KL(N(m, v) || N(0, prior_std^2)) of
+    the Gaussian fitted to each point's logits over the weight draws (rows of ``logits``),
+    mean over the points. It is small where the network's draws disagree as much as the prior
+    says an unseen place should (occupancy anywhere between free and occupied), large where
+    the network is sure of a place it has no data of."""
+    m = logits.mean(0)
+    v = logits.var(0) + 1e-6
+    s2 = prior_std * prior_std
+    return (0.5 * (torch.log(s2 / v) + (v + m * m) / s2 - 1.0)).mean()

@@ -174,6 +174,18 @@ class LearnerSettings(Section):
     w_mu: float = Field(1.0, ge=0, description="Algorithm 2: W_mu, the mu-regularisation weight, as a multiple of rho")
     w_rho: float = Field(1.0, ge=0, description="Algorithm 2: W_rho, the rho-regularisation weight, as a multiple of rho")
     mc_samples: int = Field(50, ge=1, description="bnn: forward passes per point for the mean and std maps")
+    unseen_weight: float = Field(
+        0.0, ge=0, description="bnn: weight of the noise-contrastive prior on points away from the data (0: off): "
+                               "the network's draws should disagree there as N(0, unseen_prior_std^2) logits do")
+    unseen_prior_std: float = Field(3.0, gt=0, description="bnn: std of the logit prior at points away from the data")
+    unseen_points: int = Field(256, ge=1, description="bnn: points away from the data per optimizer step")
+    unseen_draws: int = Field(4, ge=2, description="bnn: weight draws per step at those points")
+    unseen_margin_m: float = Field(0.5, gt=0, description="bnn: a point is away from the data when farther than this "
+                                                          "from every training point (of the robot or, with "
+                                                          "share_coverage, of a teammate heard of)")
+    share_coverage: bool = Field(True, description="bnn with unseen_weight: States carry the cells their senders "
+                                                   "know to be covered, so no robot teaches its network to doubt a "
+                                                   "place a teammate mapped")
     optimizer_per_round: bool = Field(True, description="re-create the optimizer every round (DiNNO's default) or keep it")
     siren_scale: float = Field(5.0, gt=0, description="frequency scale of the sine layer (inputs in metres from the map centre)")
     data: Literal["offline", "online"] = Field(

@@ -240,6 +240,7 @@ class Samples(Message):
 STATE_ENCODINGS = ("f32", "f16", "bf16", "topk", "sign", "quant", "lowrank")
 CHAINED_ENCODINGS = ("topk", "sign", "quant", "lowrank")  # each such State adds to the sender's previous one
 SCALE_CHUNK = 256  # values per scale of a sign or quant State
+MAX_COVERAGE_BYTES = 1 << 20  # a State's coverage bits: 8.4 M cells (a 1 km x 1 km map at 0.35 m)
 
 
 class State(Message):
@@ -271,7 +272,13 @@ class State(Message):
       block covers, in order.
 
     ``position`` [x, y] (m), where the sender's robot is, comes with a dynamic disk graph
-    (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it."""
+    (``learner.graph`` disk with ``learner.data`` online): receivers out of range ignore it.
+
+    ``coverage`` (``|u1``, at most MAX_COVERAGE_BYTES), with ``learner.unseen_weight`` and
+    ``learner.share_coverage``: the cells of the map the sender knows some robot has data near,
+    one bit per cell of a grid of ``unseen_margin_m / 2`` over the map's bounds (row-major from
+    the bounds' lower corner, numpy's packbits order); receivers merge it into theirs (a
+    length that does not fit their grid is ignored, with a warning)."""
 
     KIND: ClassVar[str] = "State"
     v: Literal[2] = SCHEMA_VERSION
@@ -287,9 +294,14 @@ class State(Message):
     bits: Annotated[int, Field(ge=2, le=16)] | None = None
     blocks: Annotated[list[Annotated[list[Annotated[int, Field(ge=0, lt=1 << 30)]], Field(min_length=4, max_length=4)]],
                       Field(max_length=4096)] | None = None
+    coverage: Tensor | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> State:
+        if self.coverage is not None:
+            _require(self.coverage, "coverage", "|u1", 1)
+            if self.coverage.shape[0] > MAX_COVERAGE_BYTES:
+                raise ValueError(f"coverage of {self.coverage.shape[0]} bytes (at most {MAX_COVERAGE_BYTES})")
         dtype = {"f32": "<f4", "f16": "<f2", "bf16": "<u2", "topk": "<f4", "sign": "|u1", "quant": "|u1",
                  "lowrank": "<f4"}[self.encoding]
         _require(self.params, "params", dtype, 1)
@@ -346,7 +358,7 @@ class State(Message):
     @property
     def plain(self) -> bool:
         """Whether ``params`` is the whole vector as float32 and nothing else comes with it."""
-        return self.encoding == "f32" and self.seq is None and self.position is None
+        return self.encoding == "f32" and self.seq is None and self.position is None and self.coverage is None
 
 
 class RoundComplete(Message):

@@ -10,7 +10,10 @@
   the fault layer, so a State the harness loses is lost to the rebuilding too;
 - on a dynamic disk graph (``radius``), stamps each State with its robot's position and ignores
   the messages of neighbours farther than ``radius`` (their link is out of range: a round with
-  ``learner.round_wait_s`` goes on without them).
+  ``learner.round_wait_s`` goes on without them);
+- with a :class:`~swarmmap.shared.unseen.Coverage` (``learner.share_coverage``), stamps each
+  State with the cells its node knows some robot covers, and merges what the States it
+  receives say into it (transitively, the team's coverage spreads along the graph).
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ import numpy as np
 
 from swarmmap.services.learner.exchange import Envelope, Transport
 from swarmmap.shared.compression import Compressor, Decompressor
-from swarmmap.shared.protocol import State
+from swarmmap.shared.protocol import State, Tensor
+from swarmmap.shared.unseen import Coverage
 
 log = logging.getLogger("learner")
 
@@ -32,8 +36,10 @@ class StateCodec:
     """One node's States, encoded and numbered for the wire, over ``inner``."""
 
     def __init__(self, inner: Transport, node: int, compressor: Compressor | None = None, every: int = 1,
-                 radius: float | None = None, position: Callable[[], tuple[float, float] | None] | None = None):
+                 radius: float | None = None, position: Callable[[], tuple[float, float] | None] | None = None,
+                 coverage: Coverage | None = None):
         self.inner, self.node, self.every = inner, node, every
+        self.coverage = coverage
         self.compressor = compressor if compressor is not None else Compressor("none")
         self.radius, self.position = radius, position
         self.out_of_range: dict[int, bool] = {}  # per sender: was its newest State from out of range
@@ -47,7 +53,7 @@ class StateCodec:
         wire = round * self.every
         where = self.position() if self.position is not None else None
         c = self.compressor
-        if c.mode == "none" and where is None:
+        if c.mode == "none" and where is None and self.coverage is None:
             self.inner.send_state(wire, params)  # the fast path: the frame the node wrote its parameters into
             return
         if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
@@ -59,6 +65,8 @@ class StateCodec:
             self.cached = (round, c.seq, fields)
         if where is not None:
             fields = {**fields, "position": [float(where[0]), float(where[1])]}
+        if self.coverage is not None:
+            fields = {**fields, "coverage": Tensor.of(self.coverage.packed(), "|u1")}
         self.inner.send_fields(wire, fields)
 
     def in_range(self, env: Envelope) -> bool:
@@ -81,9 +89,19 @@ class StateCodec:
 
     def _once(self, key: tuple[str, int], text: str) -> None:
         self.unusable += 1
+        self.logged_once(key, text)
+
+    def merge_coverage(self, sender: int, bits: np.ndarray) -> None:
+        try:
+            self.coverage.merge(bits)
+        except ValueError as exc:  # another map or margin: its cells are not ours
+            self.logged_once(("coverage", sender), f"node {sender}'s coverage ignored: {exc} (another map or "
+                                                    f"learner.unseen_margin_m?)")
+
+    def logged_once(self, key: tuple[str, int], text: str) -> None:
         if key not in self.logged:
             self.logged.add(key)
-            log.warning("node %d: %s (further ones are only counted)", self.node, text)
+            log.warning("node %d: %s (not logged again)", self.node, text)
 
     def receive(self, timeout: float) -> Envelope | None:
         env = self.inner.receive(timeout)
@@ -98,6 +116,8 @@ class StateCodec:
             self.ignored += 1
             return None
         if isinstance(params, State):
+            if self.coverage is not None and params.coverage is not None:
+                self.merge_coverage(env.sender, params.coverage.numpy())
             params = self.decompressor.vector(params)
             if params is None:
                 self._once(("chain", env.sender), self.decompressor.why)

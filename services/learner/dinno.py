@@ -29,9 +29,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from swarmmap.shared.bnn import BayesNet, gaussian_kl, is_rho
+from swarmmap.shared.bnn import BayesNet, function_prior_kl, gaussian_kl, is_rho, sampled_logits
 from swarmmap.shared.config import LearnerSettings
 from swarmmap.shared.models import flatten_into, set_flat
+from swarmmap.shared.unseen import Coverage
 
 
 def lr_schedule(kind: str, start: float, finish: float, rounds: int) -> np.ndarray:
@@ -99,10 +100,13 @@ def state_copies(settings: LearnerSettings) -> int:
 
 
 class LocalNode:
-    """A node's model, its local data and the loss on a random batch of it."""
+    """A node's model, its local data and the loss on a random batch of it.
+
+    With a Bayesian network and ``unseen_weight`` > 0, the loss also holds a noise-contrastive
+    prior on points away from the data (:attr:`coverage`, over the map's ``bounds``)."""
 
     def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
-                 settings: LearnerSettings, seed: int):
+                 settings: LearnerSettings, seed: int, bounds: tuple[float, float, float, float] | None = None):
         self.model = model
         self.device = next(model.parameters()).device
         self.points = points.to(self.device)
@@ -119,21 +123,33 @@ class LocalNode:
         if self.bayesian:
             self.noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
             model.use_generator(self.noise)
+        self.coverage: Coverage | None = None  # where the noise-contrastive prior samples its points
+        if self.bayesian and settings.unseen_weight > 0:
+            if bounds is None:
+                raise ValueError("learner.unseen_weight needs the map's bounds (where the unseen space lies)")
+            self.coverage = Coverage(bounds, settings.unseen_margin_m, self.points.cpu().numpy())
 
     def checkpoint(self) -> dict:
         """Everything besides the parameters that the next rounds depend on (RNG states too, so
         a resumed run repeats the uninterrupted one)."""
-        return {"gen": self.gen.get_state(), "noise": None if self.noise is None else self.noise.get_state()}
+        doc = {"gen": self.gen.get_state(), "noise": None if self.noise is None else self.noise.get_state()}
+        if self.coverage is not None:
+            doc["coverage"] = self.coverage.others.copy()
+        return doc
 
     def restore(self, doc: dict) -> None:
         self.gen.set_state(doc["gen"])
         if self.noise is not None and doc.get("noise") is not None:
             self.noise.set_state(doc["noise"])
+        if self.coverage is not None and doc.get("coverage") is not None and doc["coverage"].shape == self.coverage.shape:
+            self.coverage.merge(np.packbits(doc["coverage"].reshape(-1)))
 
     def set_data(self, points: np.ndarray, labels: np.ndarray) -> None:
         """Replace the local data (online training's sliding window)."""
         self.points = torch.from_numpy(np.ascontiguousarray(points)).to(self.device)
         self.labels = torch.from_numpy(np.ascontiguousarray(labels)).to(self.device)
+        if self.coverage is not None:
+            self.coverage.set_points(points)
 
     def state(self) -> np.ndarray:
         """What this node sends as its State: its flat parameters, written once into a vector
@@ -175,7 +191,19 @@ class LocalNode:
         idx = idx.to(self.device)
         bce = F.binary_cross_entropy_with_logits(self.model.logits(self.points[idx]), self.labels[idx])
         kl = self.s.kl_weight * self.model.kl() if self.bayesian and self.s.kl_weight > 0 else None
-        return bce, kl
+        away = self.unseen_term()
+        return bce, away if kl is None else kl if away is None else kl + away
+
+    def unseen_term(self) -> torch.Tensor | None:
+        """``unseen_weight`` x the noise-contrastive prior's KL at ``unseen_points`` points drawn
+        where no robot known to this node has data (None when off or nothing is uncovered)."""
+        if self.coverage is None:
+            return None
+        xy = self.coverage.sample(self.s.unseen_points, self.gen, self.device)
+        if xy is None:
+            return None
+        logits = sampled_logits(self.model, xy, self.s.unseen_draws, self.noise)
+        return self.s.unseen_weight * function_prior_kl(logits, self.s.unseen_prior_std)
 
     def gradient(self) -> torch.Tensor:
         """The flat gradient of the batch loss at the current parameters."""
@@ -197,8 +225,8 @@ class DinnoNode(LocalNode):
     neighbour where it is less sure than the neighbour, and stays where it is surer."""
 
     def __init__(self, model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor,
-                 settings: LearnerSettings, seed: int):
-        super().__init__(model, points, labels, settings, seed)
+                 settings: LearnerSettings, seed: int, bounds: tuple[float, float, float, float] | None = None):
+        super().__init__(model, points, labels, settings, seed, bounds)
         self.rho = settings.rho_init
         self.duals: dict[int, torch.Tensor] = {}  # one per link (as UDON): a lost link's dual is left out, not mixed in
         names = [n for n, _ in model.named_parameters()]
@@ -482,8 +510,8 @@ class DsgdNode(LocalNode):
     place, so later nodes see earlier nodes' new values; here every node mixes round-k values,
     as independent processes must.)"""
 
-    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int):
-        super().__init__(model, points, labels, settings, seed)
+    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int, bounds=None):
+        super().__init__(model, points, labels, settings, seed, bounds)
         self.weights, self.node = weights, node
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
@@ -502,8 +530,8 @@ class DsgtNode(LocalNode):
     theta <- W_ii theta - alpha y_i + sum_j W_ij theta_j, then y <- W_ii y_i + sum_j W_ij y_j
     + g(theta) - g_old, with y and g_old starting at the gradient at theta_0."""
 
-    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int):
-        super().__init__(model, points, labels, settings, seed)
+    def __init__(self, model, points, labels, settings, seed, weights: dict[int, float], node: int, bounds=None):
+        super().__init__(model, points, labels, settings, seed, bounds)
         self.weights, self.node = weights, node
         self.n = sum(p.numel() for p in model.parameters())
         self.g_old = self.gradient()

@@ -244,12 +244,17 @@ class RobotLearner:
         model = model_from_settings(s, self.world.bounds, self.cfg.seed).to(self.device)
         data = (torch.from_numpy(self.points.copy()), torch.from_numpy(self.labels.copy()))
         seed = self.cfg.seed * 1000 + robot + 1
+        bounds = self.world.bounds
         if s.algorithm == "dsgd":
-            self.node = DsgdNode(model, *data, s, seed, metropolis_weights(graph, robot), robot)
+            self.node = DsgdNode(model, *data, s, seed, metropolis_weights(graph, robot), robot, bounds)
         elif s.algorithm == "dsgt":
-            self.node = DsgtNode(model, *data, s, seed, metropolis_weights(graph, robot), robot)
+            self.node = DsgtNode(model, *data, s, seed, metropolis_weights(graph, robot), robot, bounds)
         else:
-            self.node = DinnoNode(model, *data, s, seed)
+            self.node = DinnoNode(model, *data, s, seed, bounds)
+        if self.node.coverage is not None:
+            c = self.node.coverage
+            log.info("robot %d: noise-contrastive prior on %.0f%% of the map (cells of %.2f m farther than %.2f m "
+                     "from its data)", robot, 100 * c.uncovered_fraction(), c.cell, c.margin)
 
     def publish_metrics(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
         c, params_of = self.counters(), self.node.params_of
@@ -452,7 +457,8 @@ def links(transport, learner: RobotLearner) -> StateCodec:
     if s.compression in CHAINED_ENCODINGS:
         learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
     return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
-                      position=(lambda: learner.collector.position) if dynamic else None)
+                      position=(lambda: learner.collector.position) if dynamic else None,
+                      coverage=learner.node.coverage if s.share_coverage else None)
 
 
 def weight_matrices(model: torch.nn.Module) -> list[tuple[int, int, int]]:

@@ -161,3 +161,38 @@ def test_a_link_down_for_a_round_is_down_both_ways_and_for_its_resends():
     assert up_a == up_b  # both directions of the link agree, round by round
     assert up_a == [a._link_up(Envelope("complete", 1, r)) for r in range(400)]  # every message of the round
     assert 0.22 < sum(up_a) / 400 < 0.38
+
+
+def test_states_carry_their_senders_coverage_and_a_foreign_grid_is_ignored(caplog):
+    """With a Coverage, each State says which cells its sender knows to be covered; the receiver
+    merges them (and passes them on in its own States), and still uses the parameters of a State
+    whose coverage does not fit its grid, with one warning naming the sender."""
+    from swarmmap.shared.protocol import State, Tensor, encode
+    from swarmmap.shared.unseen import Coverage
+
+    bounds = (0.0, 0.0, 6.0, 4.0)
+    rng = np.random.default_rng(0)
+    left = np.column_stack([rng.uniform(0, 2, 500), rng.uniform(0, 4, 500)])
+    right = left + [4.0, 0.0]
+    line = {0: {1}, 1: {0, 2}, 2: {1}}
+    hub = MemoryHub(line, run="links")
+    cover = {0: Coverage(bounds, 0.5, left), 1: Coverage(bounds, 0.5, np.zeros((0, 2))), 2: Coverage(bounds, 0.5, right)}
+    codecs = {i: StateCodec(hub.transport(i), i, coverage=cover[i]) for i in line}
+    vec = np.arange(8, dtype=np.float32)
+    codecs[0].send_state(0, vec)
+    codecs[2].send_state(0, vec)
+    got = [codecs[1].receive(1.0) for _ in range(2)]
+    assert all(e is not None and e.kind == "state" for e in got)
+    np.testing.assert_array_equal(cover[1].covered(), cover[0].own | cover[2].own)
+    codecs[1].send_state(1, vec)  # robot 1 has no data of its own but passes the team's on
+    assert codecs[0].receive(1.0) is not None
+    np.testing.assert_array_equal(cover[0].covered(), cover[0].own | cover[2].own)
+    before = cover[1].covered().copy()
+    hub.queues[1].put(("state", encode(State(run="links", sender=0, round=2, params=Tensor.of(vec, "<f4"),
+                                             coverage=Tensor.of(np.full(5, 255, np.uint8), "|u1")))))
+    with caplog.at_level("WARNING"):
+        env = codecs[1].receive(1.0)
+    assert env is not None and env.round == 2
+    np.testing.assert_array_equal(env.params, vec)
+    np.testing.assert_array_equal(cover[1].covered(), before)
+    assert "node 0's coverage ignored" in caplog.text

@@ -256,3 +256,16 @@ def test_all_finite_finds_any_non_finite_value_and_takes_huge_finite_ones(n, bad
     huge = np.full(n, 3e38, np.float32)
     huge[::2] *= -1 if n % 2 else 1
     assert all_finite(huge)
+
+
+def test_a_states_coverage_round_trips_and_a_bad_one_is_refused():
+    bits = np.array([0b10100000, 255, 0], np.uint8)
+    msg = State(run=RUN, sender=1, round=3, params=Tensor.of(np.arange(4, dtype=np.float32)), coverage=Tensor.of(bits, "|u1"))
+    assert not msg.plain
+    back = decode(encode(msg), State, run=RUN)
+    np.testing.assert_array_equal(back.coverage.numpy(), bits)
+    for bad in (Tensor.of(np.zeros(4, np.float32)), Tensor.of(np.zeros((2, 2), np.uint8), "|u1"),
+                Tensor.of(np.zeros((1 << 20) + 1, np.uint8), "|u1")):
+        doc = raw(msg)
+        doc["coverage"] = raw(bad)
+        assert refused(msgpack.packb(doc)) == "shape"
