@@ -15,9 +15,11 @@ over observed and never-observed cells).
   ``--rooms`` rooms, so part of the plan stays unseen; one run per ``--kl-weights`` value; a
   row of mean maps over a row of std maps.
 - ``regularization``: ``--robots`` agents (7), the strategies ``uniform-l2``, ``separate-l2``,
-  ``separate-kl`` and ``--seeds`` seeds each; validation-loss curves (mean over agents and
-  seeds, with their spread), a table of final losses with the percentage difference of
-  separate-kl against each other strategy, and the mean/std maps of the best run.
+  ``separate-kl`` and ``--seeds`` seeds each, over a grid of ``--shapes`` x ``--w-rho``
+  (W_rho / W_mu) x ``--kl-weights``; validation-loss curves (a panel per cell: mean over
+  agents and seeds, with their spread), a table of final losses with the percentage difference
+  of separate-kl against each other strategy and the seeds on which it is lower, a verdict per
+  cell, and the mean/std maps of the best run.
 - ``consensus``: ``--robots`` agents, consensus rules (``learner.consensus``) x link success
   (``faults.link_success`` drawn per link and round, with ``learner.round_wait_s`` below 100%) x exchange intervals
   (``learner.exchange_every``), then each ``--compression`` mode over perfect links; curves of
@@ -251,25 +253,6 @@ def maps_figure(columns: list[tuple[str, dict[str, np.ndarray]]], path: Path, st
     plt.close(fig)
 
 
-def curves_figure(curves: dict[str, list[dict[int, list[tuple[int, float]]]]], path: Path) -> None:
-    """Validation BCE against round per strategy: mean over agents and seeds, min-max band."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
-    for name, runs in curves.items():
-        rounds, values = stack_curves(runs)
-        if values.size == 0:
-            continue
-        ax.plot(rounds, values.mean(0), label=name)
-        ax.fill_between(rounds, values.min(0), values.max(0), alpha=0.2)
-    ax.set_xlabel("round")
-    ax.set_ylabel("validation BCE")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def reliability_figure(diagrams: list[tuple[str, dict[str, list]]], path: Path) -> None:
     """Reliability diagrams (predicted occupancy against true frequency, one line per map) over
     the diagonal of perfect calibration, with the cells per bin below."""
@@ -353,6 +336,8 @@ def base_config(args: argparse.Namespace) -> RunConfig:
     rounds = args.rounds or EXPERIMENT_ROUNDS.get((args.preset, args.experiment))
     if rounds:
         overrides["learner"]["rounds"] = rounds
+    if getattr(args, "device", None):
+        overrides["learner"]["device"] = args.device
     for item in args.set or []:
         apply_override(overrides, item)
     return resolve(overrides, preset=args.preset, environ={})
@@ -396,71 +381,174 @@ def kl_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+RegCell = tuple[tuple[int, ...], float, float]  # (model shape, W_rho / W_mu, kl_weight)
+
+
+def parse_shape(text: str) -> tuple[int, ...]:
+    """A model shape from ``2,256,64,64,1`` (or a JSON list)."""
+    try:
+        shape = tuple(int(x) for x in text.strip("[] ").split(","))
+    except ValueError:
+        raise ConfigError(f"config error:\n  --shapes: {text!r} is not a list of layer widths like 2,256,64,64,1") from None
+    if len(shape) < 4 or shape[0] != 2 or shape[-1] != 1 or min(shape) < 1:
+        raise ConfigError(f"config error:\n  --shapes: {text!r}: a BNN shape is 2, the sine layer, at least one "
+                          f"Bayesian layer, then 1")
+    return shape
+
+
+def regularization_cells(args: argparse.Namespace, base: RunConfig) -> list[RegCell]:
+    """The grid: every model shape x W_rho/W_mu ratio x kl_weight (each the base's when not given)."""
+    shapes = [parse_shape(t) for t in args.shapes] if args.shapes else [tuple(base.learner.model_shape)]
+    ratios = args.w_rho or [base.learner.w_rho / max(base.learner.w_mu, 1e-12)]
+    kls = args.kl_weights or [base.learner.kl_weight]
+    return list(dict.fromkeys((sh, r, k) for sh in shapes for r in ratios for k in kls))
+
+
+def cell_label(cell: RegCell) -> str:
+    shape, ratio, kl = cell
+    return f"model {'x'.join(map(str, shape[1:-1]))}, W_rho/W_mu {ratio:g}, kl_weight {kl:g}"
+
+
 def regularization(args: argparse.Namespace) -> int:
+    """The paper's Figures 7 and 8 over a grid (model shapes x W_rho/W_mu x kl_weight x seeds):
+    where does Algorithm 2's KL regularisation beat the L2 strategies, and by how much?"""
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     base = base_config(args)
     base = base.model_copy(update={"robots": args.robots})
     strategies = args.strategies
-    progress = Progress(len(strategies) * len(args.seeds), base.learner.rounds)
-    curves: dict[str, list] = {s: [] for s in strategies}
-    finals: dict[str, list[float]] = {s: [] for s in strategies}
-    scores: dict[str, list[dict[str, float]]] = {s: [] for s in strategies}
-    runs: list[tuple[float, str, int, Path]] = []
+    cells = regularization_cells(args, base)
+    grid = len(cells) > 1
+    # uniform-l2 has no W_rho: one run per shape and kl_weight serves every ratio of the grid
+    plan: dict[tuple, tuple[str, RegCell]] = {}
+    for cell in cells:
+        for strategy in strategies:
+            key = (strategy, cell[0], None if strategy == "uniform-l2" else cell[1], cell[2])
+            plan.setdefault(key, (strategy, cell))
+    progress = Progress(len(plan) * len(args.seeds), base.learner.rounds)
+    done: dict[tuple, dict[int, tuple[float, dict, dict, Path]]] = {key: {} for key in plan}
     rows = []
     try:
         for seed in args.seeds:
-            for strategy in strategies:
-                cfg = base.model_copy(update={"seed": seed,
-                                              "learner": base.learner.model_copy(update={"regularization": strategy})})
-                run_dir = run_up(cfg, out / "runs" / f"{strategy}-seed{seed}", progress, f"{strategy} seed {seed}")
+            for key, (strategy, (shape, ratio, kl)) in plan.items():
+                learner = base.learner.model_copy(update={
+                    "regularization": strategy, "model_shape": list(shape), "kl_weight": kl,
+                    "w_rho": base.learner.w_mu * (1.0 if strategy == "uniform-l2" else ratio)})
+                cfg = base.model_copy(update={"seed": seed, "learner": learner})
+                name = f"{strategy}-seed{seed}" if not grid else (
+                    f"{strategy}-{'x'.join(map(str, shape[1:-1]))}-kl{kl:g}"
+                    + ("" if strategy == "uniform-l2" else f"-wrho{ratio:g}") + f"-seed{seed}")
+                run_dir = run_up(cfg, out / "runs" / name, progress, f"{strategy} {cell_label((shape, ratio, kl))} seed {seed}")
                 metrics = read_metrics(run_dir)
                 final = float(np.mean([rows_[-1][1] for rows_ in metrics.values()]))
-                s = mean_scores(score_run(run_dir))
-                curves[strategy].append(metrics)
-                finals[strategy].append(final)
-                scores[strategy].append(s)
-                runs.append((final, strategy, seed, run_dir))
-                rows.append([strategy, seed, final] + [s[k] for k in SCORE_KEYS])
+                sc = mean_scores(score_run(run_dir))
+                done[key][seed] = (final, metrics, sc, run_dir)
+                rows.append([strategy, "x".join(map(str, shape)), "" if strategy == "uniform-l2" else ratio, kl, seed, final]
+                            + [sc[k] for k in SCORE_KEYS])
     finally:
         progress.close()
-    write_csv(out / "regularization_runs.csv", ["strategy", "seed", "final_val_bce_mean_over_agents", *SCORE_KEYS], rows)
+
+    def result(strategy: str, cell: RegCell) -> dict[int, tuple[float, dict, dict, Path]]:
+        return done[strategy, cell[0], None if strategy == "uniform-l2" else cell[1], cell[2]]
+
+    write_csv(out / "regularization_runs.csv", ["strategy", "model_shape", "w_rho_over_w_mu", "kl_weight", "seed",
+                                                 "final_val_bce_mean_over_agents", *SCORE_KEYS], rows)
     curve_rows = []
-    for strategy in strategies:
-        rounds, values = stack_curves(curves[strategy])
-        for i, k in enumerate(rounds):
-            curve_rows.append([strategy, int(k), values[:, i].mean(), values[:, i].min(), values[:, i].max()])
-    write_csv(out / "regularization_curves.csv", ["strategy", "round", "val_bce_mean", "val_bce_min", "val_bce_max"],
-              curve_rows)
-    curves_figure(curves, out / "regularization_curves.png")
+    for cell in cells:
+        for strategy in strategies:
+            rounds, values = stack_curves([r[1] for r in result(strategy, cell).values()])
+            for i, k in enumerate(rounds):
+                curve_rows.append([strategy, "x".join(map(str, cell[0])), cell[1], cell[2], int(k), values[:, i].mean(),
+                                   values[:, i].min(), values[:, i].max()])
+    write_csv(out / "regularization_curves.csv", ["strategy", "model_shape", "w_rho_over_w_mu", "kl_weight", "round",
+                                                   "val_bce_mean", "val_bce_min", "val_bce_max"], curve_rows)
+    regularization_figure(cells, strategies, result, out / "regularization_curves.png")
+    runs = [(r[0], strategy, seed, r[3]) for key, (strategy, _) in plan.items() for seed, r in done[key].items()]
     best = min(runs)
     best_maps = [(f"robot {r}", load_maps(best[3], r)) for r in sorted(final_val_bce(best[3]))[:4]]
     maps_figure(best_maps, out / "best_run_maps.png", base.observer.std_max)
-
-    mean = {s: float(np.mean(finals[s])) for s in strategies}
-    lines = [f"# Regularisation strategies (the paper's Figures 7 and 8): preset {base.preset}", "",
-             f"{base.robots} agents, DiNNO over a {base.learner.graph} graph, {base.learner.rounds} rounds, "
-             f"seeds {', '.join(map(str, args.seeds))}, transport {base.learner.transport}; model {base.learner.model_shape}, "
-             f"kl_weight {base.learner.kl_weight:g}.", "",
-             "![validation loss](regularization_curves.png)", "",
-             "| strategy | final val_bce (mean over agents, then seeds) | spread over seeds |", "| --- | --- | --- |"]
-    lines += [f"| {s} | {fmt(mean[s])} | {fmt(min(finals[s]))} to {fmt(max(finals[s]))} |" for s in strategies]
-    if "separate-kl" in strategies:
-        lines += [""]
-        for s in strategies:
-            if s != "separate-kl":
-                diff = 100 * (mean["separate-kl"] - mean[s]) / mean[s]
-                lines.append(f"- separate-kl against {s}: {diff:+.1f}% "
-                             f"({'lower' if diff < 0 else 'higher'} validation loss)")
-        lines.append("- the paper reports separate-kl 12-30% lower than the other strategies")
-    lines += ["", "Uncertainty scores, mean over agents and seeds (observed = within 0.1 m of any robot's "
-                  "training point):", ""]
-    lines += scores_table([(s, {k: float(np.nanmean([x[k] for x in scores[s]])) for k in SCORE_KEYS}) for s in strategies])
-    lines += ["", f"Best run: {best[1]} seed {best[2]} (val_bce {fmt(best[0])}), its first agents' maps:", "",
-              "![best run maps](best_run_maps.png)", "", f"Command: `{' '.join(sys.argv)}`", ""]
+    lines = regularization_report(args, base, cells, strategies, result, best)
     (out / "report.md").write_text("\n".join(lines))
     print("\n".join(lines))
     return 0
+
+
+def regularization_figure(cells: list[RegCell], strategies, result, path: Path) -> None:
+    """Validation BCE against round, a panel per cell of the grid, a line per strategy (mean
+    over agents and seeds, min-max band)."""
+    plt = _plt()
+    cols = min(len(cells), 3)
+    rows = -(-len(cells) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(7.0, 4.6 * cols), 3.4 * rows + 0.8), squeeze=False,
+                             constrained_layout=True)
+    for n, cell in enumerate(cells):
+        ax = axes[n // cols, n % cols]
+        for strategy in strategies:
+            rounds, values = stack_curves([r[1] for r in result(strategy, cell).values()])
+            if values.size:
+                ax.plot(rounds, values.mean(0), label=strategy)
+                ax.fill_between(rounds, values.min(0), values.max(0), alpha=0.2)
+        if len(cells) > 1:
+            ax.set_title(cell_label(cell), fontsize=8)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("round")
+        ax.set_ylabel("validation BCE")
+    for n in range(len(cells), rows * cols):
+        axes[n // cols, n % cols].set_visible(False)
+    axes[0, 0].legend()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def regularization_report(args, base: RunConfig, cells: list[RegCell], strategies, result, best) -> list[str]:
+    seeds = args.seeds
+    lines = [f"# Regularisation strategies (the paper's Figures 7 and 8): preset {base.preset}", "",
+             f"{base.robots} agents, DiNNO over a {base.learner.graph} graph, {base.learner.rounds} rounds, "
+             f"seeds {', '.join(map(str, seeds))}, transport {base.learner.transport}, device {base.learner.device}; "
+             f"W_mu {base.learner.w_mu:g} x rho. Grid: {len(cells)} cell(s) of model shape x W_rho/W_mu x kl_weight "
+             f"(uniform-l2 has no W_rho: one run serves every ratio).", "",
+             "![validation loss](regularization_curves.png)", "",
+             "| model | W_rho/W_mu | kl_weight | strategy | final val_bce (mean over agents, then seeds) | spread over seeds "
+             "| separate-kl against it | seeds where separate-kl is lower |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    verdicts = []
+    for cell in cells:
+        finals = {st: {seed: r[0] for seed, r in result(st, cell).items()} for st in strategies}
+        mean = {st: float(np.mean(list(v.values()))) for st, v in finals.items()}
+        shape, ratio, kl = cell
+        lower_all, diffs = True, []
+        for st in strategies:
+            v = list(finals[st].values())
+            vs = ""
+            wins = ""
+            if "separate-kl" in strategies and st != "separate-kl":
+                diff = 100 * (mean["separate-kl"] - mean[st]) / mean[st]
+                diffs.append(diff)
+                won = sum(finals["separate-kl"][s] < finals[st][s] for s in seeds)
+                lower_all &= won == len(seeds)
+                vs, wins = f"{diff:+.1f}%", f"{won} of {len(seeds)}"
+            lines.append(f"| {'x'.join(map(str, shape[1:-1]))} | {'-' if st == 'uniform-l2' else f'{ratio:g}'} | {kl:g} "
+                         f"| {st} | {fmt(mean[st])} | {fmt(min(v))} to {fmt(max(v))} | {vs} | {wins} |")
+        if diffs:
+            verdicts.append((cell, lower_all, max(diffs), min(diffs)))
+    if verdicts:
+        lines += ["", "Where separate-kl (Algorithm 2) stands against the L2 strategies (the paper reports 12-30% "
+                      "lower validation loss):", ""]
+        for cell, lower_all, worst, bestd in verdicts:
+            if lower_all:
+                lines.append(f"- {cell_label(cell)}: lower on every seed against every L2 strategy, by "
+                             f"{-worst:.1f}% to {-bestd:.1f}% of the mean")
+            else:
+                lines.append(f"- {cell_label(cell)}: not lower on every seed (separate-kl {bestd:+.1f}% to {worst:+.1f}% "
+                             f"against the L2 strategies' means)")
+    lines += ["", "Uncertainty scores, mean over agents and seeds (observed = within 0.1 m of any robot's "
+                  "training point):", ""]
+    lines += scores_table([(f"{st}, {cell_label(cell)}" if len(cells) > 1 else st,
+                            {k: float(np.nanmean([r[2][k] for r in result(st, cell).values()])) for k in SCORE_KEYS})
+                           for cell in cells for st in strategies])
+    lines += ["", f"Best run: {best[1]} seed {best[2]} (val_bce {fmt(best[0])}, {best[3].name}), its first agents' maps:",
+              "", "![best run maps](best_run_maps.png)", "", f"Command: `{' '.join(sys.argv)}`", ""]
+    return lines
 
 
 CONSENSUS = ("dinno", "ramen", "sigma")
@@ -665,6 +753,8 @@ def add_parser(sub) -> None:
                        help="learners in one process (same result, faster) or one process per robot over Zenoh")
         e.add_argument("--observer", action="store_true", help="also record each run in Rerun (RUN_DIR/recording.rrd)")
         e.add_argument("--set", action="append", metavar="KEY=VALUE", help="any config field, e.g. learner.prior_sigma=0.1")
+        e.add_argument("--device", default=None, help="torch device of the learners (learner.device): cpu, cuda, cuda:1; "
+                                                      "default: the config's (auto: a GPU when there is one)")
         if name == "kl-sweep":
             e.add_argument("--kl-weights", type=float, nargs="+", default=[1e-4, 5e-3, 5e-1], help="kl_weight values")
             e.add_argument("--rooms", type=int, default=2, help="rooms the agent's path visits (the rest stays unseen)")
@@ -674,6 +764,13 @@ def add_parser(sub) -> None:
                            help="seeds (plan, paths, initialisation and lost messages)")
         if name == "regularization":
             e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES), help="strategies to run")
+            e.add_argument("--shapes", nargs="+", metavar="SHAPE", default=None,
+                           help="model shapes of the grid, e.g. 2,256,64,64,64,1 2,256,256,256,256,256,1 (the paper's); "
+                                "default: the preset's")
+            e.add_argument("--w-rho", type=float, nargs="+", default=None, metavar="RATIO",
+                           help="W_rho / W_mu ratios of the grid (1: separate-l2 equals uniform-l2); default: the config's")
+            e.add_argument("--kl-weights", type=float, nargs="+", default=None,
+                           help="kl_weight values of the grid; default: the config's")
         if name == "consensus":
             e.add_argument("--consensus", nargs="+", choices=CONSENSUS, default=list(CONSENSUS), help="consensus rules")
             e.add_argument("--link-success", type=float, nargs="+", default=[1.0, 0.3, 0.05],

@@ -63,22 +63,31 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
 
 
 def test_regularization_writes_curves_table_maps_and_report(tmp_path):
+    """A grid of two W_rho/W_mu ratios: uniform-l2 (which has no W_rho) runs once and serves
+    both; separate-kl runs at each ratio, with its W_rho in its config."""
     out = tmp_path / "reg"
     proc = run("regularization", "--preset", "smoke", "--robots", "2", "--rounds", "10", "--seeds", "0",
-               "--out", str(out))
+               "--strategies", "uniform-l2", "separate-kl", "--w-rho", "1", "2", "--out", str(out))
     for name in ("regularization_curves.png", "best_run_maps.png"):
         assert_png(out / name)
     runs = list(csv.DictReader((out / "regularization_runs.csv").open()))
-    assert sorted(r["strategy"] for r in runs) == ["separate-kl", "separate-l2", "uniform-l2"]
+    assert sorted((r["strategy"], r["w_rho_over_w_mu"]) for r in runs) == [
+        ("separate-kl", "1.0"), ("separate-kl", "2.0"), ("uniform-l2", "")]
+    assert sorted(p.name for p in (out / "runs").iterdir()) == [
+        "separate-kl-128x64x64-kl0.005-wrho1-seed0", "separate-kl-128x64x64-kl0.005-wrho2-seed0",
+        "uniform-l2-128x64x64-kl0.005-seed0"]
+    assert "w_rho: 2.0" in (out / "runs" / "separate-kl-128x64x64-kl0.005-wrho2-seed0" / "config.yaml").read_text()
     curves = list(csv.DictReader((out / "regularization_curves.csv").open()))
-    assert {r["strategy"] for r in curves} == {"separate-kl", "separate-l2", "uniform-l2"}
+    assert {(r["strategy"], r["w_rho_over_w_mu"]) for r in curves} == {
+        ("separate-kl", "1.0"), ("separate-kl", "2.0"), ("uniform-l2", "1.0"), ("uniform-l2", "2.0")}
     assert {int(r["round"]) for r in curves} >= {0, 10}
     for r in curves:
         assert float(r["val_bce_min"]) <= float(r["val_bce_mean"]) <= float(r["val_bce_max"])
     report = (out / "report.md").read_text()
-    assert "separate-kl against uniform-l2" in report and "separate-kl against separate-l2" in report
+    assert report.count("separate-kl against it") == 1 and "seeds where separate-kl is lower" in report
+    assert "W_rho/W_mu 1, kl_weight 0.005:" in report and "W_rho/W_mu 2, kl_weight 0.005:" in report
     assert "nll" in report and "best_run_maps.png" in report
-    assert "separate-kl against uniform-l2" in proc.stdout  # the report is printed too
+    assert "Where separate-kl (Algorithm 2) stands" in proc.stdout  # the report is printed too
 
 
 @pytest.mark.faults  # poor links; with the fault trials, so that the everyday tier stays under 15 min
