@@ -32,6 +32,7 @@ class Coverage:
         self.own = self._covered(points)
         self.others = np.zeros(self.shape, bool)
         self._free: torch.Tensor | None = None
+        self.pending: list[tuple[int, np.ndarray]] = []  # (round, cells) offered, merged by advance()
 
     @property
     def cells(self) -> int:
@@ -58,14 +59,34 @@ class Coverage:
         """:meth:`covered` as bits (numpy's packbits order, row-major), as a State carries it."""
         return np.packbits(self.covered().reshape(-1))
 
-    def merge(self, packed: np.ndarray) -> bool:
-        """Add a teammate's coverage (bits as :meth:`packed` makes them). Returns whether any
-        cell was new. Raises ValueError for a bit string of the wrong length."""
+    def unpack(self, packed: np.ndarray) -> np.ndarray:
+        """Cells from bits as :meth:`packed` makes them; ValueError for a bit string of the wrong length."""
         bits = np.asarray(packed, np.uint8).reshape(-1)
         if len(bits) != (self.cells + 7) // 8:
             raise ValueError(f"coverage of {len(bits)} bytes for a grid of {self.cells} cells "
                              f"(expected {(self.cells + 7) // 8})")
-        theirs = np.unpackbits(bits, count=self.cells).astype(bool).reshape(self.shape)
+        return np.unpackbits(bits, count=self.cells).astype(bool).reshape(self.shape)
+
+    def offer(self, round: int, packed: np.ndarray) -> None:
+        """A teammate's coverage that came with its State of training round ``round``, merged by
+        :meth:`advance` once this node is past that round: when a State arrives does not change
+        the run (a run over Zenoh equals the one in process). ValueError as :meth:`unpack`."""
+        self.pending.append((round, self.unpack(packed)))
+
+    def advance(self, k: int) -> bool:
+        """Merge the coverage offered with States of rounds before ``k``; whether any cell was new."""
+        ready = [cells for r, cells in self.pending if r < k]
+        if not ready:
+            return False
+        self.pending = [(r, cells) for r, cells in self.pending if r >= k]
+        return self.merge_cells(np.logical_or.reduce(ready))
+
+    def merge(self, packed: np.ndarray) -> bool:
+        """Add a teammate's coverage now (bits as :meth:`packed` makes them). Returns whether
+        any cell was new. ValueError as :meth:`unpack`."""
+        return self.merge_cells(self.unpack(packed))
+
+    def merge_cells(self, theirs: np.ndarray) -> bool:
         new = theirs & ~self.covered()
         if not new.any():
             return False

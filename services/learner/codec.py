@@ -12,8 +12,9 @@
   the messages of neighbours farther than ``radius`` (their link is out of range: a round with
   ``learner.round_wait_s`` goes on without them);
 - with a :class:`~swarmmap.shared.unseen.Coverage` (``learner.share_coverage``), stamps each
-  State with the cells its node knows some robot covers, and merges what the States it
-  receives say into it (transitively, the team's coverage spreads along the graph).
+  State with the cells its node knows some robot covers, and offers what the States it
+  receives say to it (merged once the node is past their round; transitively, the team's
+  coverage spreads along the graph).
 """
 
 from __future__ import annotations
@@ -91,9 +92,9 @@ class StateCodec:
         self.unusable += 1
         self.logged_once(key, text)
 
-    def merge_coverage(self, sender: int, bits: np.ndarray) -> None:
+    def offer_coverage(self, sender: int, round: int, bits: np.ndarray) -> None:
         try:
-            self.coverage.merge(bits)
+            self.coverage.offer(round, bits)
         except ValueError as exc:  # another map or margin: its cells are not ours
             self.logged_once(("coverage", sender), f"node {sender}'s coverage ignored: {exc} (another map or "
                                                     f"learner.unseen_margin_m?)")
@@ -117,7 +118,7 @@ class StateCodec:
             return None
         if isinstance(params, State):
             if self.coverage is not None and params.coverage is not None:
-                self.merge_coverage(env.sender, params.coverage.numpy())
+                self.offer_coverage(env.sender, env.round, params.coverage.numpy())
             params = self.decompressor.vector(params)
             if params is None:
                 self._once(("chain", env.sender), self.decompressor.why)

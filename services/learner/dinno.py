@@ -194,6 +194,11 @@ class LocalNode:
         away = self.unseen_term()
         return bce, away if kl is None else kl if away is None else kl + away
 
+    def begin_round(self, k: int) -> None:
+        """Take in what the team's States of rounds before ``k`` said they cover."""
+        if self.coverage is not None:
+            self.coverage.advance(k)
+
     def unseen_term(self) -> torch.Tensor | None:
         """``unseen_weight`` x the noise-contrastive prior's KL at ``unseen_points`` points drawn
         where no robot known to this node has data (None when off or nothing is uncovered)."""
@@ -331,6 +336,7 @@ class DinnoNode(LocalNode):
         if self.counts is not None:
             self.counts = st[n:].clone()
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
+        self.begin_round(k)
 
     def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor | None) -> torch.Tensor:
         """A link's dual step. ``dinno`` (``a`` None): rho (theta_i - theta_j). ``ramen``:
@@ -515,6 +521,7 @@ class DsgdNode(LocalNode):
         self.weights, self.node = weights, node
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        self.begin_round(k)
         own = self_weight(self.weights, self.node, peers)  # an absent neighbour's weight stays home
         mixed = own * torch.as_tensor(theta_i, device=self.device)
         for j, th in peers.items():
@@ -552,6 +559,7 @@ class DsgtNode(LocalNode):
 
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
+        self.begin_round(k)
         n, w = self.n, self.weights
         own = torch.as_tensor(state_i, device=self.device)
         alpha = float(self.lrs[min(k, len(self.lrs) - 1)])

@@ -366,6 +366,9 @@ class RobotLearner:
         m = self.publish_metrics(s.rounds, final, peers, final=True)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
+        if self.node.coverage is not None:
+            log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
+                     robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))
         if self.cfg.run_dir is not None:
             write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
 

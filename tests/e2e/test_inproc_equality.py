@@ -25,7 +25,7 @@ def run(run_dir, *extra):
 
 
 THIN = ["--set", "learner.consensus=sigma", "--set", "learner.compression=quant", "--set", "learner.keyframe_every=3",
-        "--set", "learner.exchange_every=3"]
+        "--set", "learner.exchange_every=3", "--set", "learner.unseen_weight=0.05"]  # coverage travels in the States
 
 
 @pytest.mark.parametrize("model, links", [("fourier", []), ("bnn", []), ("bnn", THIN)],

@@ -165,7 +165,8 @@ def test_a_link_down_for_a_round_is_down_both_ways_and_for_its_resends():
 
 def test_states_carry_their_senders_coverage_and_a_foreign_grid_is_ignored(caplog):
     """With a Coverage, each State says which cells its sender knows to be covered; the receiver
-    merges them (and passes them on in its own States), and still uses the parameters of a State
+    merges them once past the State's round (and passes them on in its own States), and still
+    uses the parameters of a State
     whose coverage does not fit its grid, with one warning naming the sender."""
     from swarmmap.shared.protocol import State, Tensor, encode
     from swarmmap.shared.unseen import Coverage
@@ -183,9 +184,11 @@ def test_states_carry_their_senders_coverage_and_a_foreign_grid_is_ignored(caplo
     codecs[2].send_state(0, vec)
     got = [codecs[1].receive(1.0) for _ in range(2)]
     assert all(e is not None and e.kind == "state" for e in got)
+    assert not cover[1].covered().any()  # offered with round 0: taken in when robot 1 starts round 1
+    assert cover[1].advance(1)
     np.testing.assert_array_equal(cover[1].covered(), cover[0].own | cover[2].own)
     codecs[1].send_state(1, vec)  # robot 1 has no data of its own but passes the team's on
-    assert codecs[0].receive(1.0) is not None
+    assert codecs[0].receive(1.0) is not None and cover[0].advance(2)
     np.testing.assert_array_equal(cover[0].covered(), cover[0].own | cover[2].own)
     before = cover[1].covered().copy()
     hub.queues[1].put(("state", encode(State(run="links", sender=0, round=2, params=Tensor.of(vec, "<f4"),
@@ -194,5 +197,6 @@ def test_states_carry_their_senders_coverage_and_a_foreign_grid_is_ignored(caplo
         env = codecs[1].receive(1.0)
     assert env is not None and env.round == 2
     np.testing.assert_array_equal(env.params, vec)
+    cover[1].advance(3)
     np.testing.assert_array_equal(cover[1].covered(), before)
     assert "node 0's coverage ignored" in caplog.text

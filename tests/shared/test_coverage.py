@@ -56,3 +56,15 @@ def test_sampled_logits_are_draws_of_the_network_with_gradients():
     assert z.shape == (5, 32) and z.std(0).min() > 0
     z.sum().backward()
     assert net.seq[1].weight_rho.grad is not None and net.seq[1].weight_rho.grad.abs().sum() > 0
+
+
+def test_offered_coverage_counts_from_the_round_after_its_state():
+    """Coverage that came with a State of round r is taken in when the node starts round r + 1,
+    whenever the State arrived, so that runs repeat over any transport."""
+    a, b = Coverage(BOUNDS, 0.5, strip(0, 2)), Coverage(BOUNDS, 0.5, np.zeros((0, 2)))
+    b.offer(3, a.packed())
+    assert not b.advance(3) and not b.covered().any()
+    assert b.advance(4) and b.pending == []
+    np.testing.assert_array_equal(b.covered(), a.own)
+    with pytest.raises(ValueError, match="expected"):
+        b.offer(5, np.zeros(2, np.uint8))
