@@ -180,7 +180,7 @@ class LearnerSettings(Section):
     unseen_prior_std: float = Field(3.0, gt=0, description="bnn: std of the logit prior at points away from the data")
     unseen_points: int = Field(256, ge=1, description="bnn: points away from the data per optimizer step")
     unseen_draws: int = Field(4, ge=2, description="bnn: weight draws per step at those points")
-    unseen_margin_m: float = Field(0.5, gt=0, description="bnn: a point is away from the data when farther than this "
+    unseen_margin_m: float = Field(0.25, gt=0, description="bnn: a point is away from the data when farther than this "
                                                           "from every training point (of the robot or, with "
                                                           "share_coverage, of a teammate heard of)")
     share_coverage: bool = Field(True, description="bnn with unseen_weight: States carry the cells their senders "

@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from scipy.ndimage import distance_transform_edt
 
+MAX_PENDING_ROUNDS = 16  # rounds of offered coverage held at once (Algorithm 1 needs two or three)
+
 
 class Coverage:
     """The covered cells of a grid over ``bounds`` (x0, y0, x1, y1), with cells of ``margin / 2``."""
@@ -32,7 +34,7 @@ class Coverage:
         self.own = self._covered(points)
         self.others = np.zeros(self.shape, bool)
         self._free: torch.Tensor | None = None
-        self.pending: list[tuple[int, np.ndarray]] = []  # (round, cells) offered, merged by advance()
+        self.pending: dict[int, np.ndarray] = {}  # round -> cells offered with States of it, merged by advance()
 
     @property
     def cells(self) -> int:
@@ -71,15 +73,26 @@ class Coverage:
         """A teammate's coverage that came with its State of training round ``round``, merged by
         :meth:`advance` once this node is past that round: when a State arrives does not change
         the run (a run over Zenoh equals the one in process). ValueError as :meth:`unpack`."""
-        self.pending.append((round, self.unpack(packed)))
+        cells = self.unpack(packed)
+        if round not in self.pending and len(self.pending) >= MAX_PENDING_ROUNDS:
+            # a flood of rounds: memory stays bounded by folding the farthest-ahead round into
+            # this one (or this one into it), so a round far ahead holds nothing back
+            top = max(self.pending)
+            if round < top:
+                cells = cells | self.pending.pop(top)
+            else:
+                round = top
+        if round in self.pending:
+            self.pending[round] |= cells
+        else:
+            self.pending[round] = cells
 
     def advance(self, k: int) -> bool:
         """Merge the coverage offered with States of rounds before ``k``; whether any cell was new."""
-        ready = [cells for r, cells in self.pending if r < k]
+        ready = [r for r in self.pending if r < k]
         if not ready:
             return False
-        self.pending = [(r, cells) for r, cells in self.pending if r >= k]
-        return self.merge_cells(np.logical_or.reduce(ready))
+        return self.merge_cells(np.logical_or.reduce([self.pending.pop(r) for r in ready]))
 
     def merge(self, packed: np.ndarray) -> bool:
         """Add a teammate's coverage now (bits as :meth:`packed` makes them). Returns whether
@@ -87,6 +100,7 @@ class Coverage:
         return self.merge_cells(self.unpack(packed))
 
     def merge_cells(self, theirs: np.ndarray) -> bool:
+        """Add cells (a bool array of the grid's shape) that teammates cover; whether any was new."""
         new = theirs & ~self.covered()
         if not new.any():
             return False

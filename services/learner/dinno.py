@@ -142,7 +142,7 @@ class LocalNode:
         if self.noise is not None and doc.get("noise") is not None:
             self.noise.set_state(doc["noise"])
         if self.coverage is not None and doc.get("coverage") is not None and doc["coverage"].shape == self.coverage.shape:
-            self.coverage.merge(np.packbits(doc["coverage"].reshape(-1)))
+            self.coverage.merge_cells(doc["coverage"])
 
     def set_data(self, points: np.ndarray, labels: np.ndarray) -> None:
         """Replace the local data (online training's sliding window)."""

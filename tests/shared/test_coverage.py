@@ -64,7 +64,19 @@ def test_offered_coverage_counts_from_the_round_after_its_state():
     a, b = Coverage(BOUNDS, 0.5, strip(0, 2)), Coverage(BOUNDS, 0.5, np.zeros((0, 2)))
     b.offer(3, a.packed())
     assert not b.advance(3) and not b.covered().any()
-    assert b.advance(4) and b.pending == []
+    assert b.advance(4) and b.pending == {}
     np.testing.assert_array_equal(b.covered(), a.own)
     with pytest.raises(ValueError, match="expected"):
         b.offer(5, np.zeros(2, np.uint8))
+
+
+def test_a_flood_of_rounds_holds_at_most_a_bounded_number_of_grids():
+    from swarmmap.shared.unseen import MAX_PENDING_ROUNDS
+
+    a, b = Coverage(BOUNDS, 0.5, strip(0, 2)), Coverage(BOUNDS, 0.5, np.zeros((0, 2)))
+    for r in range(1000):
+        b.offer(10**6 - r, a.packed())
+    assert len(b.pending) == MAX_PENDING_ROUNDS
+    assert not b.advance(5)  # rounds from far ahead wait until the node gets there
+    b.offer(7, a.packed())  # an honest State's coverage is not held back behind them
+    assert b.advance(8)
