@@ -84,6 +84,14 @@ def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
 def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float]]:
     """Uncertainty scores of every robot's maps in a finished bnn run; observed cells are the
     ones within ``radius_m`` of any robot's training point."""
+    paths = sorted((run_dir / "maps").glob("robot-*.npz"), key=lambda p: int(p.stem.split("-")[1]))
+    robots = [int(p.stem.split("-")[1]) for p in paths]
+    return dict(zip(robots, score_maps(run_dir, [load_maps(run_dir, r) for r in robots], radius_m)))
+
+
+def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float = 0.1) -> list[dict[str, float]]:
+    """Scores of mean/std maps (``mean``, ``std``, ``resolution``, ``origin``) against the run's
+    ground truth, observed cells being those within ``radius_m`` of any robot's training point."""
     from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
     from swarmmap.shared.uncertainty import observed_mask, score_map
 
@@ -92,20 +100,45 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
                              unknown=gt["grid"] == 2)
     files = sorted((run_dir / "data").glob("robot-*.npz"))
     points = np.concatenate([np.load(f)["points"] for f in files]) if files else np.zeros((0, 2))
-    references: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (resolution, shape, origin) -> truth, observed
-    scores = {}
-    for path in sorted((run_dir / "maps").glob("robot-*.npz"), key=lambda p: int(p.stem.split("-")[1])):
-        robot = int(path.stem.split("-")[1])
-        maps = load_maps(run_dir, robot)
-        res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
+    references: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # grid -> truth, observed, known
+    scores = []
+    for m in maps:
+        res, shape, origin = float(m["resolution"]), m["mean"].shape, tuple(m["origin"])
         if (res, shape, origin) not in references:  # every robot's map shares its grid, normally
             fine = grid.resample(res)
             truth = fine.grid[: shape[0], : shape[1]] > 0
             known = np.ones(shape, bool) if fine.unknown is None else ~fine.unknown[: shape[0], : shape[1]]
             references[res, shape, origin] = truth, observed_mask(shape, origin, res, points, radius_m), known
         truth, observed, known = references[res, shape, origin]
-        scores[robot] = score_map(maps["mean"][known], maps["std"][known], truth[known], observed[known])
+        scores.append(score_map(m["mean"][known], m["std"][known], truth[known], observed[known]))
     return scores
+
+
+def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
+    """The team's final models as a deep ensemble (the baseline users know): per cell, the mean
+    of the models' occupancies and the spread of the mixture, sqrt(mean of each model's
+    variance + variance of their means) (a deterministic model's own variance is 0)."""
+    from swarmmap.shared.bnn import predict_mean_std
+    from swarmmap.shared.floorplan import OccupancyGrid
+    from swarmmap.shared.models import load_model
+
+    learner = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("learner", {})
+    res, samples = float(learner.get("map_resolution_m", 0.05)), int(learner.get("mc_samples", 50))
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        grid = OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]))
+    pts, (h, w) = grid.centres(res)
+    paths = sorted((run_dir / "models").glob("robot-*.pt"))
+    if not paths:
+        raise FileNotFoundError(f"{run_dir / 'models'}: no robot-<i>.pt (the run did not finish?)")
+    means, variances = [], []
+    for path in paths:
+        mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=samples)
+        means.append(mean.astype(np.float64))
+        variances.append(np.square(std, dtype=np.float64))
+    mean = np.mean(means, 0)
+    std = np.sqrt(np.mean(variances, 0) + np.var(means, 0))
+    return {"mean": mean.reshape(h, w), "std": std.reshape(h, w), "resolution": np.float64(res),
+            "origin": np.asarray(grid.origin), "members": np.int64(len(paths))}
 
 
 class Progress:
@@ -716,22 +749,34 @@ def score(args: argparse.Namespace) -> int:
     """Print the scores of a finished run's maps and write them, with reliability diagrams, to
     ``--out`` (default RUN_DIR/scores; an earlier scores folder is moved aside, not overwritten)."""
     per_robot = score_run(args.run_dir, args.radius)
-    if not per_robot:
-        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn run saves std maps)", file=sys.stderr)
+    ensemble = None
+    if args.ensemble:
+        maps = ensemble_maps(args.run_dir)
+        ensemble = (int(maps["members"]), score_maps(args.run_dir, [maps], args.radius)[0])
+    if not per_robot and ensemble is None:
+        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn run saves std maps; --ensemble scores any run's "
+              f"models together)", file=sys.stderr)
         return 2
     vals = final_val_bce(args.run_dir)
-    print("\n".join(scores_table([(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()])))
+    rows = [(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()]
+    if ensemble is not None:
+        rows.append((f"ensemble of {ensemble[0]} robot model(s)", ensemble[1]))
+    print("\n".join(scores_table(rows)))
     out = args.out or args.run_dir / "scores"
     if out.exists() and any(out.iterdir()):
         aside = move_aside(out)
         print(f"{out} held earlier scores; moved them to {aside}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "scores.csv", ["robot", "final_val_bce", *SCORE_KEYS],
-              [[r, vals.get(r), *(s[k] for k in SCORE_KEYS)] for r, s in per_robot.items()])
-    doc = {"run_dir": str(args.run_dir), "radius_m": args.radius, "mean": mean_scores(per_robot),
+              [[r, vals.get(r), *(s[k] for k in SCORE_KEYS)] for r, s in per_robot.items()]
+              + ([["ensemble", None, *(ensemble[1][k] for k in SCORE_KEYS)]] if ensemble else []))
+    doc = {"run_dir": str(args.run_dir), "radius_m": args.radius, "mean": mean_scores(per_robot) if per_robot else None,
            "robots": {str(r): {"final_val_bce": vals.get(r), **s} for r, s in per_robot.items()}}
+    if ensemble is not None:
+        doc["ensemble"] = {"members": ensemble[0], **ensemble[1]}
     (out / "scores.json").write_text(json.dumps(json_ready(doc), indent=1))
-    reliability_figure([(f"robot {r}", s["reliability"]) for r, s in per_robot.items()], out / "reliability.png")
+    reliability_figure([(f"robot {r}", s["reliability"]) for r, s in per_robot.items()]
+                       + ([("ensemble", ensemble[1]["reliability"])] if ensemble else []), out / "reliability.png")
     print(f"wrote {out / 'scores.csv'}, {out / 'scores.json'} and {out / 'reliability.png'}")
     return 0
 
@@ -787,6 +832,8 @@ def add_parser(sub) -> None:
                        description="Uncertainty scores of a finished bnn run's maps.")
     s.add_argument("run_dir", type=Path, help="the run directory")
     s.add_argument("--radius", type=float, default=0.1, help="cells within this distance (m) of a training point are observed")
+    s.add_argument("--ensemble", action="store_true", help="also score the robots' final models as one deep ensemble "
+                                                           "(any model: a FourierNet run too)")
     s.add_argument("--out", type=Path, default=None, help="folder for scores.csv, scores.json, reliability.png "
                                                           "(default RUN_DIR/scores)")
 

@@ -51,8 +51,13 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
     doc = json.loads((folder / "scores.json").read_text())
     assert set(doc["robots"]) == {"0"} and len(doc["robots"]["0"]["reliability"]["cells"]) == 10
     assert_png(folder / "reliability.png")
-    run("score", str(out / "runs" / "kl-0.0001"))
+    second = run("score", str(out / "runs" / "kl-0.0001"), "--ensemble")
     assert list(folder.parent.glob("scores.replaced-*")), "earlier scores were not kept"
+    assert "ensemble of 1 robot model(s)" in second.stdout
+    ens = json.loads((folder / "scores.json").read_text())["ensemble"]
+    assert ens["members"] == 1 and 0 <= ens["auroc_unobserved"] <= 1
+    # one Bayesian member: its own spread, as its maps have it (the same 50 draws, seed 0)
+    assert ens["std_observed"] == pytest.approx(doc["robots"]["0"]["std_observed"], rel=1e-3)
     # Run again: the finished runs are reused; with other settings they are not.
     again = run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "1e-4", "--rooms", "1", "--out", str(out))
     assert "reusing it" in again.stderr
