@@ -206,6 +206,8 @@ class LearnerSettings(Section):
     silent_after_s: float = Field(30.0, gt=0, description="leave a neighbour out of the round when it has been silent "
                                                          "this long (it is taken back when it sends again)")
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
+    inbox_limit: int = Field(64, ge=4, description="messages that may wait from any one neighbour; a flood beyond this is "
+                                                   "dropped (Algorithm 1 resends what an honest neighbour lost)")
     consensus: Literal["dinno", "ramen", "sigma"] = Field(
         "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
                              "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")

@@ -47,6 +47,44 @@ class Envelope:
     params: np.ndarray | State | None = None  # a State of another encoding until a StateCodec rebuilds its vector
 
 
+class Inbox:
+    """Received messages in arrival order, at most ``per_sender`` of them waiting from any one
+    neighbour: beyond that, a sender's new messages are dropped and counted (:attr:`dropped`).
+    A member of the run that floods its links then costs bounded memory, and an honest
+    neighbour's messages, which Algorithm 1 resends while they are missing, are never held
+    back by another's flood."""
+
+    def __init__(self, per_sender: int = 64):
+        import queue
+
+        self.per_sender = per_sender
+        self._queue: queue.SimpleQueue[Envelope] = queue.SimpleQueue()
+        self._held: Counter[int] = Counter()
+        self.dropped: Counter[int] = Counter()
+        self._lock = threading.Lock()
+
+    def put(self, env: Envelope) -> bool:
+        """Queue ``env``; False (dropped) when its sender already has ``per_sender`` waiting."""
+        with self._lock:
+            if self._held[env.sender] >= self.per_sender:
+                self.dropped[env.sender] += 1
+                return False
+            self._held[env.sender] += 1
+        self._queue.put(env)
+        return True
+
+    def get(self, timeout: float) -> Envelope | None:
+        import queue
+
+        try:
+            env = self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+        with self._lock:
+            self._held[env.sender] -= 1
+        return env
+
+
 class Transport(Protocol):
     """How a node talks to its neighbours: Zenoh in deployment, memory in the reference run."""
 

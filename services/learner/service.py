@@ -416,7 +416,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 # Subscribe to exactly its neighbours (known once the world answered), then
                 # say so with an "exchange" token; neighbours start Algorithm 1 once they see it.
                 me = learners[0]
-                transport = ZenohTransport(bus, me.robot, me.neighbours, me.node.state_size())
+                transport = ZenohTransport(bus, me.robot, me.neighbours, me.node.state_size(), s.inbox_limit)
                 me.node.new_state = transport.new_state  # States written straight into their payloads
                 if any_faults(cfg.faults):
                     log.warning("robot %d: injecting faults on its incoming links: %s", me.robot, cfg.faults.model_dump())

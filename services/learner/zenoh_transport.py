@@ -2,8 +2,10 @@
 
 A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete`` and
 subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
-than this node's model is refused (counted, logged once). The neighbours' ``exchange``
-liveliness tokens tell the exchange when one has left.
+than this node's model is refused (counted, logged once). At most ``inbox_limit`` messages
+wait from any one neighbour (:class:`~swarmmap.services.learner.exchange.Inbox`): a flood
+beyond that is dropped, counted and logged once. The neighbours' ``exchange`` liveliness
+tokens tell the exchange when one has left.
 
 No copies of a vector beyond Zenoh's own: the node writes its State into a
 :class:`~swarmmap.shared.protocol.StateFrame` (:meth:`ZenohTransport.new_state`), which is sent
@@ -13,24 +15,26 @@ payload.
 
 from __future__ import annotations
 
-import queue
+import logging
 import threading
 
 import numpy as np
 
-from swarmmap.services.learner.exchange import Envelope, state_envelope
+from swarmmap.services.learner.exchange import Envelope, Inbox, state_envelope
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateFrame, encode_state
+
+log = logging.getLogger("learner")
 
 
 class ZenohTransport:
     """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.bus.Bus`."""
 
-    def __init__(self, bus: Bus, node: int, neighbours: set[int], param_count: int):
+    def __init__(self, bus: Bus, node: int, neighbours: set[int], param_count: int, inbox_limit: int = 64):
         self.bus = bus
         self.node = node
         self.run = bus.keys.run
-        self.inbox: queue.SimpleQueue[Envelope] = queue.SimpleQueue()
+        self.inbox = Inbox(inbox_limit)
         self._lost: set[int] = set()
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()  # a frame is stamped and sent as one step
@@ -53,10 +57,15 @@ class ZenohTransport:
         bus.watch_alive("exchange", on_alive)
 
     def _on_state(self, msg: State) -> None:
-        self.inbox.put(state_envelope(msg))  # an uncompressed vector: read-only, no copy
+        self._queue(state_envelope(msg))  # an uncompressed vector: read-only, no copy
 
     def _on_complete(self, msg: RoundComplete) -> None:
-        self.inbox.put(Envelope("complete", msg.sender, msg.round))
+        self._queue(Envelope("complete", msg.sender, msg.round))
+
+    def _queue(self, env: Envelope) -> None:
+        if not self.inbox.put(env) and self.inbox.dropped[env.sender] == 1:
+            log.warning("node %d: neighbour %d has %d messages waiting; dropping its further ones until this node "
+                        "catches up (a flood? counted in the inbox)", self.node, env.sender, self.inbox.per_sender)
 
     def new_state(self, n: int) -> np.ndarray:
         """A vector for the node to write its next State into: the payload it will be sent in."""
@@ -78,10 +87,7 @@ class ZenohTransport:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))
 
     def receive(self, timeout: float) -> Envelope | None:
-        try:
-            return self.inbox.get(timeout=timeout)
-        except queue.Empty:
-            return None
+        return self.inbox.get(timeout)
 
     def lost_peers(self) -> set[int]:
         with self._lock:

@@ -450,3 +450,19 @@ def test_on_a_clock_states_near_the_team_pass_and_hostile_ones_are_refused():
     # then node 1's drifted State is near its last, and node 2's are refused, one a round.
     assert taken == [(1, 3.0), (1, 3.5)]
     assert sum(stats.refused.values()) == 3
+
+
+def test_the_inbox_bounds_what_one_neighbour_can_queue_and_never_holds_another_back():
+    """A member flooding its link fills only its own share of the inbox: its further messages
+    are dropped and counted, an honest neighbour's still come through, and once the node has
+    taken what waited, the flooder's next message is queued again."""
+    from swarmmap.services.learner.exchange import Envelope, Inbox
+
+    inbox = Inbox(per_sender=8)
+    flood = [inbox.put(Envelope("state", 1, r, np.zeros(4, np.float32))) for r in range(1000)]
+    assert sum(flood) == 8 and inbox.dropped[1] == 992
+    assert inbox.put(Envelope("complete", 2, 0))
+    got = [inbox.get(0.1) for _ in range(9)]
+    assert [e.sender for e in got] == [1] * 8 + [2] and [e.round for e in got[:8]] == list(range(8))
+    assert inbox.get(0.01) is None
+    assert inbox.put(Envelope("state", 1, 1000)) and inbox.get(0.1).round == 1000
