@@ -363,6 +363,15 @@ def unseen_text(cfg: RunConfig) -> str:
     return f" ({', '.join(parts)})" if parts else ""
 
 
+def prior_text(cfg: RunConfig) -> str:
+    """The noise-contrastive prior on unseen space, for a report ("" when off)."""
+    s = cfg.learner
+    if s.model != "bnn" or s.unseen_weight <= 0:
+        return ""
+    return (f" Noise-contrastive prior on unseen space: weight {s.unseen_weight:g}, margin {s.unseen_margin_m:g} m, "
+            f"logit prior std {s.unseen_prior_std:g}{', coverage shared' if s.share_coverage else ''}.")
+
+
 def base_config(args: argparse.Namespace) -> RunConfig:
     overrides: dict = {"learner": {"model": "bnn", "transport": args.transport}, "up": {"observer": args.observer},
                        "log_level": "warning"}
@@ -402,7 +411,8 @@ def kl_sweep(args: argparse.Namespace) -> int:
     lines = [f"# KL-weight sweep (the paper's Figure 6): preset {base.preset}", "",
              f"One isolated agent (no communication) whose path visits {args.rooms} room(s), so part of the plan "
              f"stays unseen{unseen_text(base)}; {base.learner.rounds} rounds of {base.learner.primal_iterations} steps, "
-             f"model {base.learner.model_shape}, prior sigma {base.learner.prior_sigma}, rho init {base.learner.bnn_rho_init}.",
+             f"model {base.learner.model_shape}, prior sigma {base.learner.prior_sigma}, rho init {base.learner.bnn_rho_init}."
+             f"{prior_text(base)}",
              "", "![mean and std maps](kl_sweep_maps.png)", "",
              "| kl_weight | final val_bce |", "| --- | --- |"]
     lines += [f"| {r[0]:g} | {fmt(r[1])} |" for r in rows]
@@ -540,7 +550,7 @@ def regularization_report(args, base: RunConfig, cells: list[RegCell], strategie
              f"{base.robots} agents, DiNNO over a {base.learner.graph} graph, {base.learner.rounds} rounds, "
              f"seeds {', '.join(map(str, seeds))}, transport {base.learner.transport}, device {base.learner.device}; "
              f"W_mu {base.learner.w_mu:g} x rho. Grid: {len(cells)} cell(s) of model shape x W_rho/W_mu x kl_weight "
-             f"(uniform-l2 has no W_rho: one run serves every ratio).", "",
+             f"(uniform-l2 has no W_rho: one run serves every ratio).{unseen_text(base)}{prior_text(base)}", "",
              "![validation loss](regularization_curves.png)", "",
              "| model | W_rho/W_mu | kl_weight | strategy | final val_bce (mean over agents, then seeds) | spread over seeds "
              "| separate-kl against it | seeds where separate-kl is lower |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -707,7 +717,8 @@ def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list
              f"{base.learner.graph} graph, {base.learner.rounds} rounds, seeds {', '.join(map(str, seeds))}, transport "
              f"{base.learner.transport}. Poor links: each link is up for a round, both ways, with the link success "
              f"probability (drawn per link and round: the messages of a round that is down are lost, resends "
-             f"included); below 100% a round waits at most {args.round_wait:g} s for messages.", "",
+             f"included); below 100% a round waits at most {args.round_wait:g} s for messages."
+             f"{unseen_text(base)}{prior_text(base)}", "",
              "![val_bce against round](consensus_curves.png)", "", "![val_bce against bytes sent](consensus_bytes.png)", "",
              "| consensus | link success | exchange every | compression | final val_bce (mean over agents, then seeds) "
              "| spread over seeds | MB sent per learner |", "| --- | --- | --- | --- | --- | --- | --- |"]
