@@ -48,7 +48,16 @@ from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
-from swarmmap.shared.protocol import CHAINED_ENCODINGS, Keys, Metrics, Samples, WorldMap, all_finite, encode_state
+from swarmmap.shared.protocol import (
+    CHAINED_ENCODINGS,
+    MAX_COVERAGE_BYTES,
+    Keys,
+    Metrics,
+    Samples,
+    WorldMap,
+    all_finite,
+    encode_state,
+)
 
 log = logging.getLogger("learner")
 
@@ -459,9 +468,13 @@ def links(transport, learner: RobotLearner) -> StateCodec:
                             weight_matrices(learner.node.model))
     if s.compression in CHAINED_ENCODINGS:
         learner.node.public = lambda: compressor.replica  # the consensus terms use what the neighbours hold of it
+    coverage = learner.node.coverage if s.share_coverage else None
+    if coverage is not None and (coverage.cells + 7) // 8 > MAX_COVERAGE_BYTES:
+        log.warning("robot %d: coverage not shared: %d cells of %.2f m are more than a State may carry (%d bytes); "
+                    "raise learner.unseen_margin_m to share it", robot, coverage.cells, coverage.cell, MAX_COVERAGE_BYTES)
+        coverage = None
     return StateCodec(transport, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
-                      position=(lambda: learner.collector.position) if dynamic else None,
-                      coverage=learner.node.coverage if s.share_coverage else None)
+                      position=(lambda: learner.collector.position) if dynamic else None, coverage=coverage)
 
 
 def weight_matrices(model: torch.nn.Module) -> list[tuple[int, int, int]]:
