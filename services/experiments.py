@@ -89,15 +89,22 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
     return dict(zip(robots, score_maps(run_dir, [load_maps(run_dir, r) for r in robots], radius_m)))
 
 
+def truth_grid(run_dir: Path):
+    """The run's ground-truth occupancy grid (``groundtruth.npz``: 0 free, 1 occupied, 2 unknown,
+    never scored)."""
+    from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
+
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        return OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]),
+                             unknown=gt["grid"] == 2)
+
+
 def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float = 0.1) -> list[dict[str, float]]:
     """Scores of mean/std maps (``mean``, ``std``, ``resolution``, ``origin``) against the run's
     ground truth, observed cells being those within ``radius_m`` of any robot's training point."""
-    from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
     from swarmmap.shared.uncertainty import observed_mask, score_map
 
-    with np.load(run_dir / "groundtruth.npz") as gt:  # 0 free, 1 occupied, 2 unknown (never scored)
-        grid = OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]),
-                             unknown=gt["grid"] == 2)
+    grid = truth_grid(run_dir)
     files = sorted((run_dir / "data").glob("robot-*.npz"))
     points = np.concatenate([np.load(f)["points"] for f in files]) if files else np.zeros((0, 2))
     references: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # grid -> truth, observed, known
@@ -119,20 +126,18 @@ def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
     of the models' occupancies and the spread of the mixture, sqrt(mean of each model's
     variance + variance of their means) (a deterministic model's own variance is 0)."""
     from swarmmap.shared.bnn import predict_mean_std
-    from swarmmap.shared.floorplan import OccupancyGrid
     from swarmmap.shared.models import load_model
 
-    learner = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("learner", {})
-    res, samples = float(learner.get("map_resolution_m", 0.05)), int(learner.get("mc_samples", 50))
-    with np.load(run_dir / "groundtruth.npz") as gt:
-        grid = OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]))
+    learner = resolve(config_file=run_dir / "config.yaml", environ={}).learner  # the maps' grid and passes
+    res = learner.map_resolution_m
+    grid = truth_grid(run_dir)
     pts, (h, w) = grid.centres(res)
     paths = sorted((run_dir / "models").glob("robot-*.pt"))
     if not paths:
         raise FileNotFoundError(f"{run_dir / 'models'}: no robot-<i>.pt (the run did not finish?)")
     means, variances = [], []
     for path in paths:
-        mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=samples)
+        mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=learner.mc_samples)
         means.append(mean.astype(np.float64))
         variances.append(np.square(std, dtype=np.float64))
     mean = np.mean(means, 0)
@@ -447,9 +452,21 @@ def regularization_cells(args: argparse.Namespace, base: RunConfig) -> list[RegC
     return list(dict.fromkeys((sh, r, k) for sh in shapes for r in ratios for k in kls))
 
 
+def widths(shape: tuple[int, ...]) -> str:
+    """A model shape's hidden widths, ``256x64x64``."""
+    return "x".join(map(str, shape[1:-1]))
+
+
 def cell_label(cell: RegCell) -> str:
     shape, ratio, kl = cell
-    return f"model {'x'.join(map(str, shape[1:-1]))}, W_rho/W_mu {ratio:g}, kl_weight {kl:g}"
+    return f"model {widths(shape)}, W_rho/W_mu {ratio:g}, kl_weight {kl:g}"
+
+
+def run_key(strategy: str, cell: RegCell) -> tuple:
+    """Which run of the grid gives ``strategy`` at ``cell``: uniform-l2 has no W_rho, so one
+    run per shape and kl_weight serves every ratio."""
+    shape, ratio, kl = cell
+    return strategy, shape, None if strategy == "uniform-l2" else ratio, kl
 
 
 def regularization(args: argparse.Namespace) -> int:
@@ -462,12 +479,10 @@ def regularization(args: argparse.Namespace) -> int:
     strategies = args.strategies
     cells = regularization_cells(args, base)
     grid = len(cells) > 1
-    # uniform-l2 has no W_rho: one run per shape and kl_weight serves every ratio of the grid
     plan: dict[tuple, tuple[str, RegCell]] = {}
     for cell in cells:
         for strategy in strategies:
-            key = (strategy, cell[0], None if strategy == "uniform-l2" else cell[1], cell[2])
-            plan.setdefault(key, (strategy, cell))
+            plan.setdefault(run_key(strategy, cell), (strategy, cell))
     progress = Progress(len(plan) * len(args.seeds), base.learner.rounds)
     done: dict[tuple, dict[int, tuple[float, dict, dict, Path]]] = {key: {} for key in plan}
     rows = []
@@ -479,7 +494,7 @@ def regularization(args: argparse.Namespace) -> int:
                     "w_rho": base.learner.w_mu * (1.0 if strategy == "uniform-l2" else ratio)})
                 cfg = base.model_copy(update={"seed": seed, "learner": learner})
                 name = f"{strategy}-seed{seed}" if not grid else (
-                    f"{strategy}-{'x'.join(map(str, shape[1:-1]))}-kl{kl:g}"
+                    f"{strategy}-{widths(shape)}-kl{kl:g}"
                     + ("" if strategy == "uniform-l2" else f"-wrho{ratio:g}") + f"-seed{seed}")
                 run_dir = run_up(cfg, out / "runs" / name, progress, f"{strategy} {cell_label((shape, ratio, kl))} seed {seed}")
                 metrics = read_metrics(run_dir)
@@ -492,7 +507,7 @@ def regularization(args: argparse.Namespace) -> int:
         progress.close()
 
     def result(strategy: str, cell: RegCell) -> dict[int, tuple[float, dict, dict, Path]]:
-        return done[strategy, cell[0], None if strategy == "uniform-l2" else cell[1], cell[2]]
+        return done[run_key(strategy, cell)]
 
     write_csv(out / "regularization_runs.csv", ["strategy", "model_shape", "w_rho_over_w_mu", "kl_weight", "seed",
                                                  "final_val_bce_mean_over_agents", *SCORE_KEYS], rows)
@@ -570,7 +585,7 @@ def regularization_report(args, base: RunConfig, cells: list[RegCell], strategie
                 won = sum(finals["separate-kl"][s] < finals[st][s] for s in seeds)
                 lower_all &= won == len(seeds)
                 vs, wins = f"{diff:+.1f}%", f"{won} of {len(seeds)}"
-            lines.append(f"| {'x'.join(map(str, shape[1:-1]))} | {'-' if st == 'uniform-l2' else f'{ratio:g}'} | {kl:g} "
+            lines.append(f"| {widths(shape)} | {'-' if st == 'uniform-l2' else f'{ratio:g}'} | {kl:g} "
                          f"| {st} | {fmt(mean[st])} | {fmt(min(v))} to {fmt(max(v))} | {vs} | {wins} |")
         if diffs:
             verdicts.append((cell, lower_all, max(diffs), min(diffs)))
