@@ -94,11 +94,6 @@ class Coverage:
             return False
         return self.merge_cells(np.logical_or.reduce([self.pending.pop(r) for r in ready]))
 
-    def merge(self, packed: np.ndarray) -> bool:
-        """Add a teammate's coverage now (bits as :meth:`packed` makes them). Returns whether
-        any cell was new. ValueError as :meth:`unpack`."""
-        return self.merge_cells(self.unpack(packed))
-
     def merge_cells(self, theirs: np.ndarray) -> bool:
         """Add cells (a bool array of the grid's shape) that teammates cover; whether any was new."""
         new = theirs & ~self.covered()

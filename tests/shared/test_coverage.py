@@ -32,13 +32,17 @@ def test_samples_lie_only_away_from_the_data():
 def test_a_teammates_coverage_is_merged_and_passed_on():
     a, b, c = Coverage(BOUNDS, 0.5, strip(0, 2)), Coverage(BOUNDS, 0.5, strip(4, 6)), Coverage(BOUNDS, 0.5, np.zeros((0, 2)))
     assert c.uncovered_fraction() == 1.0
-    assert b.merge(a.packed()) and not b.merge(a.packed())  # new cells once, then nothing new
-    assert c.merge(b.packed())  # b passes a's cells on
+    b.offer(0, a.packed())
+    assert b.advance(1)
+    b.offer(1, a.packed())
+    assert not b.advance(2)  # new cells once, then nothing new
+    c.offer(2, b.packed())
+    assert c.advance(3)  # b passes a's cells on
     np.testing.assert_array_equal(c.covered(), a.own | b.own)
     xy = c.sample(1000, torch.Generator().manual_seed(1)).numpy()
     assert ((xy[:, 0] > 2.2) & (xy[:, 0] < 3.8)).all()  # only the gap nobody saw
     with pytest.raises(ValueError, match="expected"):
-        a.merge(np.zeros(3, np.uint8))  # another map's grid
+        a.offer(0, np.zeros(3, np.uint8))  # another map's grid
 
 
 def test_the_prior_term_is_small_for_unsure_draws_and_large_for_sure_ones():
