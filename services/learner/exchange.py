@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import threading
 import time
 from collections import Counter, defaultdict
@@ -55,8 +56,6 @@ class Inbox:
     back by another's flood."""
 
     def __init__(self, per_sender: int = 64):
-        import queue
-
         self.per_sender = per_sender
         self._queue: queue.SimpleQueue[Envelope] = queue.SimpleQueue()
         self._held: Counter[int] = Counter()
@@ -74,8 +73,6 @@ class Inbox:
         return True
 
     def get(self, timeout: float) -> Envelope | None:
-        import queue
-
         try:
             env = self._queue.get(timeout=timeout)
         except queue.Empty:
@@ -556,8 +553,6 @@ class MemoryHub:
 
     def __init__(self, graph: dict[int, set[int]],
                  delay: Callable[[int, int, Envelope], float] | None = None, run: str | None = None):
-        import queue
-
         self.graph = graph
         self.delay = delay
         self.run = run
@@ -616,8 +611,6 @@ class MemoryTransport:
                              encode(RoundComplete(run=self.hub.run, sender=self.node, round=round)))
 
     def receive(self, timeout: float) -> Envelope | None:
-        import queue
-
         try:
             item = self.hub.queues[self.node].get(timeout=timeout)
         except queue.Empty:
