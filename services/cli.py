@@ -49,8 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
                            help="communication rounds per learner (learner.rounds)")
             p.add_argument("--transport", dest="learner.transport", default=argparse.SUPPRESS, metavar="{zenoh,inproc}",
                            help="Algorithm 1 over Zenoh, one learner process per robot (default), or in one process (learner.transport)")
-            p.add_argument("--model", dest="learner.model", default=argparse.SUPPRESS, metavar="{fourier,bnn}",
-                           help="DiNNO's FourierNet or the paper's Bayesian network (learner.model)")
+            p.add_argument("--model", dest="learner.model", default=argparse.SUPPRESS, metavar="{fourier,bnn,dropout}",
+                           help="DiNNO's FourierNet, the paper's Bayesian network or a FourierNet with MC dropout (learner.model)")
             p.add_argument("--regularization", dest="learner.regularization", default=argparse.SUPPRESS,
                            metavar="{uniform-l2,separate-l2,separate-kl}", help="bnn consensus regularisation (learner.regularization)")
             p.add_argument("--algorithm", dest="learner.algorithm", default=argparse.SUPPRESS,

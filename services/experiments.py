@@ -76,7 +76,7 @@ def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
     """A robot's saved mean and std maps (``maps/robot-<i>.npz``)."""
     path = run_dir / "maps" / f"robot-{robot}.npz"
     if not path.exists():
-        raise FileNotFoundError(f"{path}: no mean/std maps (only a bnn run saves them)")
+        raise FileNotFoundError(f"{path}: no mean/std maps (only a bnn or dropout run saves them)")
     with np.load(path) as z:
         return {k: z[k] for k in z.files}
 
@@ -121,10 +121,10 @@ def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float
     return scores
 
 
-def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
-    """The team's final models as a deep ensemble (the baseline users know): per cell, the mean
-    of the models' occupancies and the spread of the mixture, sqrt(mean of each model's
-    variance + variance of their means) (a deterministic model's own variance is 0)."""
+def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str, np.ndarray]]:
+    """Each robot's mean and std maps computed anew from its final model (``models/robot-<i>.pt``)
+    on the run's map grid with its number of passes; ``std_of="logit"``: the std of the passes'
+    logits instead of their probabilities."""
     from swarmmap.shared.bnn import predict_mean_std
     from swarmmap.shared.models import load_model
 
@@ -132,18 +132,27 @@ def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
     res = learner.map_resolution_m
     grid = truth_grid(run_dir)
     pts, (h, w) = grid.centres(res)
-    paths = sorted((run_dir / "models").glob("robot-*.pt"))
+    paths = sorted((run_dir / "models").glob("robot-*.pt"), key=lambda p: int(p.stem.split("-")[1]))
     if not paths:
         raise FileNotFoundError(f"{run_dir / 'models'}: no robot-<i>.pt (the run did not finish?)")
-    means, variances = [], []
+    maps = {}
     for path in paths:
-        mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=learner.mc_samples)
-        means.append(mean.astype(np.float64))
-        variances.append(np.square(std, dtype=np.float64))
+        mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=learner.mc_samples, std_of=std_of)
+        maps[int(path.stem.split("-")[1])] = {"mean": mean.reshape(h, w), "std": std.reshape(h, w),
+                                              "resolution": np.float64(res), "origin": np.asarray(grid.origin)}
+    return maps
+
+
+def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
+    """The team's final models as a deep ensemble (the baseline users know): per cell, the mean
+    of the models' occupancies and the spread of the mixture, sqrt(mean of each model's
+    variance + variance of their means) (a deterministic model's own variance is 0)."""
+    members = list(model_maps(run_dir).values())
+    means = [m["mean"].astype(np.float64) for m in members]
     mean = np.mean(means, 0)
-    std = np.sqrt(np.mean(variances, 0) + np.var(means, 0))
-    return {"mean": mean.reshape(h, w), "std": std.reshape(h, w), "resolution": np.float64(res),
-            "origin": np.asarray(grid.origin), "members": np.int64(len(paths))}
+    std = np.sqrt(np.mean([np.square(m["std"], dtype=np.float64) for m in members], 0) + np.var(means, 0))
+    return {"mean": mean, "std": std, "resolution": members[0]["resolution"], "origin": members[0]["origin"],
+            "members": np.int64(len(members))}
 
 
 class Progress:
@@ -368,6 +377,17 @@ def unseen_text(cfg: RunConfig) -> str:
     return f" ({', '.join(parts)})" if parts else ""
 
 
+def model_text(cfg: RunConfig) -> str:
+    """The run's network and its uncertainty settings, for a report."""
+    s = cfg.learner
+    if s.model == "bnn":
+        return (f"BNN {s.model_shape}, prior sigma {s.prior_sigma:g}, rho init {s.bnn_rho_init:g}"
+                f"{', local reparameterisation' if s.bnn_local_reparam else ''}")
+    if s.model == "dropout":
+        return f"FourierNet {s.model_shape} with MC dropout p {s.dropout_p:g} (kl_weight has no effect)"
+    return f"FourierNet {s.model_shape} (deterministic: no std)"
+
+
 def prior_text(cfg: RunConfig) -> str:
     """The noise-contrastive prior on unseen space, for a report ("" when off)."""
     s = cfg.learner
@@ -416,8 +436,7 @@ def kl_sweep(args: argparse.Namespace) -> int:
     lines = [f"# KL-weight sweep (the paper's Figure 6): preset {base.preset}", "",
              f"One isolated agent (no communication) whose path visits {args.rooms} room(s), so part of the plan "
              f"stays unseen{unseen_text(base)}; {base.learner.rounds} rounds of {base.learner.primal_iterations} steps, "
-             f"model {base.learner.model_shape}, prior sigma {base.learner.prior_sigma}, rho init {base.learner.bnn_rho_init}."
-             f"{prior_text(base)}",
+             f"{model_text(base)}.{prior_text(base)}",
              "", "![mean and std maps](kl_sweep_maps.png)", "",
              "| kl_weight | final val_bce |", "| --- | --- |"]
     lines += [f"| {r[0]:g} | {fmt(r[1])} |" for r in rows]
@@ -659,7 +678,7 @@ def consensus(args: argparse.Namespace) -> int:
                 sent.setdefault(cell, {})[seed] = per_learner
                 curves.setdefault(cell, []).append(metrics)
                 byte_curves.setdefault(cell, []).append(wire)
-                sc = mean_scores(score_run(run_dir)) if base.learner.model == "bnn" else {k: float("nan") for k in SCORE_KEYS}
+                sc = mean_scores(score_run(run_dir)) if base.learner.model != "fourier" else {k: float("nan") for k in SCORE_KEYS}
                 scored.setdefault(cell, []).append(sc)
                 rows.append([cons, link, every, comp, seed, final, per_learner] + [sc[k] for k in SCORE_KEYS])
     finally:
@@ -763,7 +782,7 @@ def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list
             ref = (cell[0], 1.0, 1, "none")
             ratio = np.mean([sent[ref][s] for s in seeds]) / np.mean([sent[cell][s] for s in seeds])
             lines.append(f"| {cell[3]} | {cell[0]} | {ratio:.1f}x fewer | {100 * (mean(cell) - mean(ref)) / mean(ref):+.1f}% |")
-    if base.learner.model == "bnn":
+    if base.learner.model != "fourier":
         lines += ["", "Uncertainty scores, mean over agents and seeds:", ""]
         lines += scores_table([(cell_name(*c), {k: float(np.nanmean([x[k] for x in scored[c]])) for k in SCORE_KEYS})
                                for c in cells])
@@ -774,13 +793,21 @@ def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list
 def score(args: argparse.Namespace) -> int:
     """Print the scores of a finished run's maps and write them, with reliability diagrams, to
     ``--out`` (default RUN_DIR/scores; an earlier scores folder is moved aside, not overwritten)."""
-    per_robot = score_run(args.run_dir, args.radius)
+    if args.std_of == "logit":
+        if args.ensemble:
+            print("--std-of logit scores each robot's model; the ensemble's spread is of probabilities: "
+                  "give one of --ensemble and --std-of logit", file=sys.stderr)
+            return 2
+        maps = model_maps(args.run_dir, "logit")
+        per_robot = dict(zip(maps, score_maps(args.run_dir, list(maps.values()), args.radius)))
+    else:
+        per_robot = score_run(args.run_dir, args.radius)
     ensemble = None
     if args.ensemble:
         maps = ensemble_maps(args.run_dir)
         ensemble = (int(maps["members"]), score_maps(args.run_dir, [maps], args.radius)[0])
     if not per_robot and ensemble is None:
-        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn run saves std maps; --ensemble scores any run's "
+        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn or dropout run saves std maps; --ensemble scores any run's "
               f"models together)", file=sys.stderr)
         return 2
     vals = final_val_bce(args.run_dir)
@@ -796,7 +823,8 @@ def score(args: argparse.Namespace) -> int:
     write_csv(out / "scores.csv", ["robot", "final_val_bce", *SCORE_KEYS],
               [[r, vals.get(r), *(s[k] for k in SCORE_KEYS)] for r, s in per_robot.items()]
               + ([["ensemble", None, *(ensemble[1][k] for k in SCORE_KEYS)]] if ensemble else []))
-    doc = {"run_dir": str(args.run_dir), "radius_m": args.radius, "mean": mean_scores(per_robot) if per_robot else None,
+    doc = {"run_dir": str(args.run_dir), "radius_m": args.radius, "std_of": args.std_of,
+           "mean": mean_scores(per_robot) if per_robot else None,
            "robots": {str(r): {"final_val_bce": vals.get(r), **s} for r, s in per_robot.items()}}
     if ensemble is not None:
         doc["ensemble"] = {"members": ensemble[0], **ensemble[1]}
@@ -860,6 +888,9 @@ def add_parser(sub) -> None:
     s.add_argument("--radius", type=float, default=0.1, help="cells within this distance (m) of a training point are observed")
     s.add_argument("--ensemble", action="store_true", help="also score the robots' final models as one deep ensemble "
                                                            "(any model: a FourierNet run too)")
+    s.add_argument("--std-of", choices=("probability", "logit"), default="probability",
+                   help="the spread scored: of the passes' occupancy probabilities (the saved maps), or of their "
+                        "logits (maps computed anew from the robots' final models)")
     s.add_argument("--out", type=Path, default=None, help="folder for scores.csv, scores.json, reliability.png "
                                                           "(default RUN_DIR/scores)")
 

@@ -39,12 +39,12 @@ import torch
 from swarmmap.services.learner.dinno import state_copies
 from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.bnn import BayesNet, fast_bf16, predict_mean_std
+from swarmmap.shared.bnn import fast_bf16, predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.compression import Decompressor
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import model_from_settings, param_count, pick_device, set_flat
+from swarmmap.shared.models import StochasticNet, model_from_settings, param_count, pick_device, set_flat
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, Tensor, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
@@ -241,7 +241,7 @@ class Observer:
         h, w = self.shape
         self.rec.set_time("round", sequence=msg.round)
         self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), "gray_r", 1.0)))
-        if isinstance(self.model, BayesNet):
+        if isinstance(self.model, StochasticNet):
             self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), "magma", self.s.std_max)))
         dt = time.perf_counter() - t0
         self.rec.log("observer/map_time_s", rr.Scalars(dt))
@@ -290,7 +290,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     rec = rr.RecordingStream("swarmmap", recording_id=cfg.run_id)
-    bp = blueprint(cfg.robots, cfg.learner.model == "bnn")
+    bp = blueprint(cfg.robots, cfg.learner.model != "fourier")
     sinks = open_sinks(cfg, rec, bp)
     log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
     obs = Observer(cfg, rec, device)

@@ -14,7 +14,6 @@ Every rho parameter's name ends in ``_rho``: that is how Algorithm 2 splits the 
 
 from __future__ import annotations
 
-import contextlib
 import math
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from swarmmap.shared.models import FourierNet
+from swarmmap.shared.models import DropoutNet, NoiseSource, StochasticNet
 
 
 def gaussian_kl(mu0: torch.Tensor, sigma0: torch.Tensor, mu1: torch.Tensor | float, sigma1: torch.Tensor | float) -> torch.Tensor:
@@ -33,13 +32,21 @@ def gaussian_kl(mu0: torch.Tensor, sigma0: torch.Tensor, mu1: torch.Tensor | flo
     return 0.5 * (torch.log(sigma1**2 / sigma0**2) + (sigma0**2 + (mu0 - mu1) ** 2) / sigma1**2 - 1.0)
 
 
-class BayesLinear(nn.Module):
-    """A linear layer with Gaussian weights and biases: (mu, rho) each, sigma = softplus(rho)."""
+class BayesLinear(NoiseSource):
+    """A linear layer with Gaussian weights and biases: (mu, rho) each, sigma = softplus(rho).
 
-    def __init__(self, in_features: int, out_features: int, prior_sigma: float = 0.1, rho_init: float = -5.0):
+    ``local_reparam`` (Kingma et al., "Variational Dropout and the Local Reparameterization
+    Trick", 2015): instead of one weight draw for the batch, draw each example's outputs from
+    the Gaussian they follow under the posterior, N(x mu_W + mu_b, x^2 sigma_W^2 + sigma_b^2):
+    the same distribution for every example, drawn independently per example, so the
+    gradient's variance falls with the batch. It changes only the training passes; the maps
+    draw whole weights either way."""
+
+    def __init__(self, in_features: int, out_features: int, prior_sigma: float = 0.1, rho_init: float = -5.0,
+                 local_reparam: bool = False):
         super().__init__()
         self.prior_sigma = prior_sigma
-        self.generator: torch.Generator | None = None  # per-node noise, so threads never share an RNG
+        self.local_reparam = local_reparam
         self.weight_mu = nn.Parameter(torch.empty(out_features, in_features))
         self.weight_rho = nn.Parameter(torch.full((out_features, in_features), rho_init))
         self.bias_mu = nn.Parameter(torch.empty(out_features))
@@ -49,15 +56,13 @@ class BayesLinear(nn.Module):
             nn.init.kaiming_uniform_(self.weight_mu, a=math.sqrt(5))
             self.bias_mu.uniform_(-bound, bound)
 
-    def _noise(self, like: torch.Tensor) -> torch.Tensor:
-        if self.generator is None:
-            return torch.randn_like(like)
-        return torch.randn(like.shape, generator=self.generator, device=self.generator.device).to(like.device)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        w = self.weight_mu + F.softplus(self.weight_rho) * self._noise(self.weight_mu)
-        b = self.bias_mu + F.softplus(self.bias_rho) * self._noise(self.bias_mu)
-        return F.linear(x, w, b)
+        sw, sb = F.softplus(self.weight_rho), F.softplus(self.bias_rho)
+        if self.local_reparam:
+            mean = F.linear(x, self.weight_mu, self.bias_mu)
+            var = F.linear(x * x, sw * sw, sb * sb)
+            return mean + var.clamp_min(1e-16).sqrt() * self._draw(mean)
+        return F.linear(x, self.weight_mu + sw * self._draw(self.weight_mu), self.bias_mu + sb * self._draw(self.bias_mu))
 
     def kl(self) -> torch.Tensor:
         """Summed KL of the layer's weights and biases to the prior N(0, prior_sigma^2)."""
@@ -68,33 +73,16 @@ class BayesLinear(nn.Module):
         return self.weight_mu.numel() + self.bias_mu.numel()
 
 
-class BayesNet(FourierNet):
+class BayesNet(StochasticNet):
     """The paper's BNN: (x, y) -> SIREN (h1, sine) -> Bayesian linear layers (ReLU) -> linear (1, sigmoid)."""
 
     def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float],
-                 prior_sigma: float = 0.1, rho_init: float = -5.0):
-        super().__init__(shape, scale, bounds, hidden_layer=lambda a, b: BayesLinear(a, b, prior_sigma, rho_init))
+                 prior_sigma: float = 0.1, rho_init: float = -5.0, local_reparam: bool = False):
+        super().__init__(shape, scale, bounds,
+                         hidden_layer=lambda a, b: BayesLinear(a, b, prior_sigma, rho_init, local_reparam))
 
     def bayes_layers(self) -> list[BayesLinear]:
         return [m for m in self.seq if isinstance(m, BayesLinear)]
-
-    def use_generator(self, generator: torch.Generator | None) -> None:
-        """Draw every layer's weight noise from ``generator`` (None: torch's global RNG)."""
-        for layer in self.bayes_layers():
-            layer.generator = generator
-
-    @contextlib.contextmanager
-    def noise(self, seed: int):
-        """Within the block, draw weight noise from a fresh generator seeded ``seed`` (evaluation
-        never disturbs the noise stream that training draws from)."""
-        saved = [layer.generator for layer in self.bayes_layers()]
-        device = self.centre.device
-        self.use_generator(torch.Generator(device=device).manual_seed(seed))
-        try:
-            yield self
-        finally:
-            for layer, gen in zip(self.bayes_layers(), saved):
-                layer.generator = gen
 
     def kl(self) -> torch.Tensor:
         """Mean KL per Bayesian parameter to the prior (the ``kl_loss`` of equation 7)."""
@@ -199,37 +187,75 @@ class MapPlan:
 @torch.no_grad()
 def predict_mean_std(model: nn.Module, points: np.ndarray, samples: int = 50, batch: int = 8192,
                      seed: int = 0, points_per_chunk: int | None = None, sample_chunk: int = 64,
-                     dtype: torch.dtype = torch.float32) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard deviation (N,) of the occupancy over ``samples`` stochastic passes
+                     dtype: torch.dtype = torch.float32, std_of: str = "probability") -> tuple[np.ndarray, np.ndarray]:
+    """Mean occupancy and its standard deviation (N,) over ``samples`` stochastic passes
     (float32 numpy arrays). A deterministic model gives its output and zero spread.
+    ``std_of="logit"``: the spread of the passes' pre-sigmoid outputs instead (the predictive
+    variance in logit space, which a sigmoid squashes near 0 and 1).
 
-    Weights are drawn once per pass for the whole map, from a generator seeded ``seed``, so the
-    result does not depend on how the points are chunked. The passes run together in groups of
-    ``sample_chunk`` (memory for their weights stays bounded at any ``samples``) over chunks of
-    points (``points_per_chunk``, by default sized so one group's activations take about 8 MB;
-    ``batch`` caps it). ``dtype=torch.bfloat16`` runs the products in bf16 where
-    :func:`fast_bf16` says the hardware has it; means and spreads are accumulated in float64."""
+    A BNN's weights are drawn once per pass for the whole map, from a generator seeded
+    ``seed``, so the result does not depend on how the points are chunked. The passes run
+    together in groups of ``sample_chunk`` (memory for their weights stays bounded at any
+    ``samples``) over chunks of points (``points_per_chunk``, by default sized so one group's
+    activations take about 8 MB; ``batch`` caps it). ``dtype=torch.bfloat16`` runs the
+    products in bf16 where :func:`fast_bf16` says the hardware has it; means and spreads are
+    accumulated in float64. An MC-dropout network draws its masks per point and pass."""
+    if std_of not in ("probability", "logit"):
+        raise ValueError(f"std_of must be probability or logit, got {std_of!r}")
     device = next(model.parameters()).device
-    if not isinstance(model, BayesNet) or not model.bayes_layers():
+    bayes = isinstance(model, BayesNet) and bool(model.bayes_layers())
+    if not bayes and not isinstance(model, DropoutNet):
         out = _predict_deterministic(model, points, batch, device)
         return out, np.zeros_like(out)
     generator = torch.Generator(device=device).manual_seed(seed)
     total = torch.zeros(len(points), dtype=torch.float64, device=device)
-    squares = torch.zeros(len(points), dtype=torch.float64, device=device)
+    squares = torch.zeros(len(points), dtype=torch.float64, device=device)  # of what the std is taken of
+    logit_sum = torch.zeros(len(points), dtype=torch.float64, device=device) if std_of == "logit" else None
     done = 0
     while done < samples:
         group = min(sample_chunk, samples - done)
-        plan = MapPlan(model, group, generator, dtype)
+        plan = MapPlan(model, group, generator, dtype) if bayes else DropoutPlan(model, group, generator)
         chunk = points_per_chunk or max(16, min(batch, (8 << 20) // (4 * group * max(plan.widths))))
         for s in range(0, len(points), chunk):
             xy = torch.as_tensor(points[s : s + chunk], dtype=torch.float32, device=device)
-            p = torch.sigmoid(plan.logits(xy)).double()
+            z = plan.logits(xy)
+            p = torch.sigmoid(z).double()
             total[s : s + chunk] += p.sum(0)
-            squares[s : s + chunk] += (p * p).sum(0)
+            if logit_sum is None:
+                squares[s : s + chunk] += (p * p).sum(0)
+            else:
+                z = z.double()
+                logit_sum[s : s + chunk] += z.sum(0)
+                squares[s : s + chunk] += (z * z).sum(0)
         done += group
     mean = total / samples
-    std = (squares / samples - mean * mean).clamp_min(0).sqrt()
+    centre = mean if logit_sum is None else logit_sum / samples
+    std = (squares / samples - centre * centre).clamp_min(0).sqrt()
     return mean.float().cpu().numpy(), std.float().cpu().numpy()
+
+
+class DropoutPlan:
+    """The S-pass evaluation of a :class:`DropoutNet`: the sine layer once per point, then
+    every pass's masks at once over the points repeated S times."""
+
+    def __init__(self, model: DropoutNet, samples: int, generator: torch.Generator | None):
+        self.model, self.samples, self.generator = model, samples, generator
+        self.widths = list(model.shape[1:-1])
+
+    def logits(self, xy: torch.Tensor) -> torch.Tensor:
+        """Pre-sigmoid outputs (S, N) of every pass for points ``xy`` (N, 2)."""
+        layers = list(self.model.seq)
+        h = layers[0](xy - self.model.centre)
+        h = h.unsqueeze(0).expand(self.samples, -1, -1).reshape(-1, h.shape[-1])
+        saved = [m.generator for m in self.model.noise_sources()]
+        self.model.use_generator(self.generator)
+        try:
+            for m in layers[1:]:
+                h = m(h)
+        finally:
+            for m, gen in zip(self.model.noise_sources(), saved):
+                m.generator = gen
+        return h.reshape(self.samples, -1).float()
 
 
 def _predict_deterministic(model: nn.Module, points: np.ndarray, batch: int, device: torch.device) -> np.ndarray:

@@ -162,7 +162,9 @@ class LearnerSettings(Section):
         "complete", description="communication graph: complete, ring, an edge-list file, or DiNNO's disk graph")
     graph_file: Path | None = Field(None, description="graph = file: YAML/JSON list of [i, j] edges")
     comm_radius_m: float = Field(15.0, gt=0, description="graph = disk: robots within this distance talk (m)")
-    model: Literal["fourier", "bnn"] = Field("fourier", description="DiNNO's deterministic FourierNet, or the paper's Bayesian network")
+    model: Literal["fourier", "bnn", "dropout"] = Field(
+        "fourier", description="DiNNO's deterministic FourierNet, the paper's Bayesian network, or a FourierNet with MC "
+                                "dropout (a baseline for the BNN's uncertainty)")
     model_shape: list[int] = Field(
         default_factory=lambda: [2, 256, 64, 64, 64, 1],
         description="layer widths: input 2, sine layer, hidden ReLU layers (Bayesian for bnn), output 1")
@@ -171,9 +173,13 @@ class LearnerSettings(Section):
     kl_weight: float = Field(5e-3, ge=0, description="bnn: weight of the KL to the prior in the loss (equation 7)")
     prior_sigma: float = Field(0.1, gt=0, description="bnn: standard deviation of the Gaussian prior")
     bnn_rho_init: float = Field(-5.0, description="bnn: initial rho of every weight and bias (sigma = softplus(rho))")
+    bnn_local_reparam: bool = Field(False, description="bnn: train with the local reparameterisation trick (each example's "
+                                                       "activations drawn from their Gaussian, not one weight draw a batch)")
+    dropout_p: float = Field(0.1, ge=0, lt=1, description="dropout: probability of dropping a unit, in training and in "
+                                                            "each of the mc_samples passes of a map")
     w_mu: float = Field(1.0, ge=0, description="Algorithm 2: W_mu, the mu-regularisation weight, as a multiple of rho")
     w_rho: float = Field(1.0, ge=0, description="Algorithm 2: W_rho, the rho-regularisation weight, as a multiple of rho")
-    mc_samples: int = Field(50, ge=1, description="bnn: forward passes per point for the mean and std maps")
+    mc_samples: int = Field(50, ge=1, description="bnn, dropout: forward passes per point for the mean and std maps")
     unseen_weight: float = Field(
         0.0, ge=0, description="bnn: weight of the noise-contrastive prior on points away from the data (0: off): "
                                "the network's draws should disagree there as N(0, unseen_prior_std^2) logits do")
@@ -249,6 +255,9 @@ class LearnerSettings(Section):
         if self.consensus == "sigma" and self.model != "bnn":
             raise ValueError("consensus sigma weighs by the posterior's sigma: it needs model bnn (a FourierNet has no "
                              "posterior; ramen works with either)")
+        if self.unseen_weight > 0 and self.model != "bnn":
+            raise ValueError("unseen_weight (the noise-contrastive prior on unseen space) shapes a Bayesian network's "
+                             "weight draws: it needs model bnn")
         if self.consensus != "dinno" and self.algorithm != "dinno":
             raise ValueError(f"consensus {self.consensus} weighs DiNNO's consensus: it needs algorithm dinno")
         if self.exchange_every_s > 0 and (self.algorithm != "dinno" or self.exchange_every != 1):

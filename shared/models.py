@@ -9,6 +9,7 @@ as one flat float32 vector (DiNNO's ``parameters_to_vector``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -64,10 +65,81 @@ class FourierNet(nn.Module):
         return torch.sigmoid(self.logits(xy))
 
 
+class NoiseSource(nn.Module):
+    """A layer whose forward pass draws noise, from its ``generator`` (None: torch's global RNG)."""
+
+    generator: torch.Generator | None = None
+
+    def _draw(self, like: torch.Tensor, fn: Callable = torch.randn) -> torch.Tensor:
+        """Noise shaped like ``like`` (``fn`` torch.randn or torch.rand), on its device."""
+        if self.generator is None:
+            return fn(like.shape, dtype=like.dtype, device=like.device)
+        return fn(like.shape, generator=self.generator, device=self.generator.device).to(like.device, like.dtype)
+
+
+class StochasticNet(FourierNet):
+    """A FourierNet whose passes differ (weight draws, dropout masks): its prediction is the
+    mean of several passes and their spread is its uncertainty. Every noise source of the
+    network draws from one generator, set by :meth:`use_generator` or, for a block, :meth:`noise`."""
+
+    def noise_sources(self) -> list[NoiseSource]:
+        return [m for m in self.modules() if isinstance(m, NoiseSource)]
+
+    def use_generator(self, generator: torch.Generator | None) -> None:
+        """Draw every layer's noise from ``generator`` (None: torch's global RNG)."""
+        for layer in self.noise_sources():
+            layer.generator = generator
+
+    @contextlib.contextmanager
+    def noise(self, seed: int):
+        """Within the block, draw noise from a fresh generator seeded ``seed`` (evaluation never
+        disturbs the noise stream that training draws from)."""
+        saved = [layer.generator for layer in self.noise_sources()]
+        self.use_generator(torch.Generator(device=self.centre.device).manual_seed(seed))
+        try:
+            yield self
+        finally:
+            for layer, gen in zip(self.noise_sources(), saved):
+                layer.generator = gen
+
+
+class MCDropout(NoiseSource):
+    """Dropout that stays on when predicting (MC dropout, Gal and Ghahramani, "Dropout as a
+    Bayesian Approximation", 2016): each pass zeroes each unit with probability ``p`` and
+    scales the others by 1 / (1 - p)."""
+
+    def __init__(self, p: float):
+        super().__init__()
+        if not 0 <= p < 1:
+            raise ValueError(f"dropout probability must lie in [0, 1), got {p}")
+        self.p = p
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.p == 0:
+            return x
+        keep = 1.0 - self.p
+        return x * (self._draw(x, torch.rand) < keep).to(x.dtype) / keep
+
+
+class DropoutNet(StochasticNet):
+    """DiNNO's FourierNet with MC dropout before every layer after the sine layer: the same
+    parameters as the FourierNet (the same State), a mean and a spread from its passes."""
+
+    def __init__(self, shape: list[int], scale: float, bounds: tuple[float, float, float, float], p: float = 0.1):
+        super().__init__(shape, scale, bounds, hidden_layer=lambda a, b: nn.Sequential(MCDropout(p), nn.Linear(a, b)))
+        self.seq[-1] = nn.Sequential(MCDropout(p), self.seq[-1])
+        self.p = p
+
+
+MODEL_KINDS = ("fourier", "bnn", "dropout")
+
+
 def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int,
-                kind: str = "fourier", prior_sigma: float = 0.1, rho_init: float = -5.0) -> nn.Module:
-    """A FourierNet (``kind`` fourier) or the paper's BayesNet (bnn) initialised from ``seed``
-    (every learner of a run starts from the same one, as in DiNNO)."""
+                kind: str = "fourier", prior_sigma: float = 0.1, rho_init: float = -5.0, dropout_p: float = 0.1,
+                local_reparam: bool = False) -> nn.Module:
+    """A FourierNet (``kind`` fourier), the paper's BayesNet (bnn) or a FourierNet with MC
+    dropout (dropout) initialised from ``seed`` (every learner of a run starts from the same
+    one, as in DiNNO)."""
     from swarmmap.shared.bnn import BayesNet
 
     gen_state = torch.random.get_rng_state()
@@ -76,8 +148,10 @@ def build_model(shape: list[int], scale: float, bounds: tuple[float, float, floa
         if kind == "fourier":
             return FourierNet(shape, scale, bounds)
         if kind == "bnn":
-            return BayesNet(shape, scale, bounds, prior_sigma, rho_init)
-        raise ValueError(f"unknown model {kind!r}; allowed: fourier, bnn")
+            return BayesNet(shape, scale, bounds, prior_sigma, rho_init, local_reparam)
+        if kind == "dropout":
+            return DropoutNet(shape, scale, bounds, dropout_p)
+        raise ValueError(f"unknown model {kind!r}; allowed: {', '.join(MODEL_KINDS)}")
     finally:
         torch.random.set_rng_state(gen_state)
 
@@ -85,7 +159,7 @@ def build_model(shape: list[int], scale: float, bounds: tuple[float, float, floa
 def model_from_settings(settings, bounds: tuple[float, float, float, float], seed: int) -> nn.Module:
     """The model a LearnerSettings describes."""
     return build_model(settings.model_shape, settings.siren_scale, bounds, seed, settings.model,
-                       settings.prior_sigma, settings.bnn_rho_init)
+                       settings.prior_sigma, settings.bnn_rho_init, settings.dropout_p, settings.bnn_local_reparam)
 
 
 @torch.no_grad()
@@ -134,14 +208,23 @@ def predict(model: FourierNet, points: np.ndarray, batch: int = 65536) -> np.nda
     return np.concatenate(out) if out else np.zeros(0, dtype=np.float32)
 
 
-def save_model(model: nn.Module, path: Path, **meta: object) -> None:
-    """Write the model (kind, state dict, shape, scale and ``meta``) atomically."""
-    import io
-
+def model_kind(model: nn.Module) -> str:
+    """``fourier``, ``bnn`` or ``dropout``: what :func:`build_model` calls the model's kind."""
     from swarmmap.shared.bnn import BayesNet
 
-    kind = "bnn" if isinstance(model, BayesNet) else "fourier"
-    extra = {"prior_sigma": model.bayes_layers()[0].prior_sigma} if kind == "bnn" and model.bayes_layers() else {}
+    return "bnn" if isinstance(model, BayesNet) else "dropout" if isinstance(model, DropoutNet) else "fourier"
+
+
+def save_model(model: nn.Module, path: Path, **meta: object) -> None:
+    """Write the model (kind, state dict, shape, scale, its kind's settings and ``meta``) atomically."""
+    import io
+
+    kind = model_kind(model)
+    extra: dict = {}
+    if kind == "bnn" and model.bayes_layers():
+        extra = {"prior_sigma": model.bayes_layers()[0].prior_sigma}
+    elif kind == "dropout":
+        extra = {"dropout_p": model.p}
     buf = io.BytesIO()
     torch.save({"kind": kind, "shape": model.shape, "scale": model.scale, "state_dict": model.state_dict(),
                 "meta": meta, **extra}, buf)
@@ -152,7 +235,7 @@ def load_model(path: Path) -> nn.Module:
     """Load a model written by :func:`save_model`."""
     doc = torch.load(path, map_location="cpu", weights_only=True)
     model = build_model(doc["shape"], doc["scale"], (0.0, 0.0, 1.0, 1.0), 0, doc.get("kind", "fourier"),
-                        doc.get("prior_sigma", 0.1))
+                        doc.get("prior_sigma", 0.1), dropout_p=doc.get("dropout_p", 0.1))
     model.load_state_dict(doc["state_dict"])
     return model
 

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from swarmmap.shared.bnn import BayesNet, function_prior_kl, gaussian_kl, is_rho, sampled_logits
 from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.models import flatten_into, set_flat
+from swarmmap.shared.models import StochasticNet, flatten_into, set_flat
 from swarmmap.shared.unseen import Coverage
 
 
@@ -120,7 +120,7 @@ class LocalNode:
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         self.bayesian = isinstance(model, BayesNet)
         self.noise: torch.Generator | None = None
-        if self.bayesian:
+        if isinstance(model, StochasticNet):  # weight draws or dropout masks: the node's own stream
             self.noise = torch.Generator(device=self.device).manual_seed(seed + 7_000_003)
             model.use_generator(self.noise)
         self.coverage: Coverage | None = None  # where the noise-contrastive prior samples its points
@@ -481,13 +481,13 @@ def ramen_targets(th_i: torch.Tensor, c_i: torch.Tensor, thj: torch.Tensor, cj: 
 
 @torch.no_grad()
 def validation_bce(model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor, batch: int = 65536) -> float:
-    """Mean binary cross-entropy of ``model`` over a validation set (for a Bayesian network,
-    of its prediction: the mean of the sampled passes' probabilities, 10 passes)."""
+    """Mean binary cross-entropy of ``model`` over a validation set (for a Bayesian or MC-dropout
+    network, of its prediction: the mean of the sampled passes' probabilities, 10 passes)."""
     total = 0.0
-    bayesian = isinstance(model, BayesNet)
+    stochastic = isinstance(model, StochasticNet)
     for s in range(0, len(points), batch):
         xy, y = points[s : s + batch], labels[s : s + batch]
-        if bayesian:
+        if stochastic:
             with model.noise(seed=s):
                 p = torch.stack([model(xy) for _ in range(10)]).mean(0).clamp(1e-7, 1 - 1e-7)
             total += float(F.binary_cross_entropy(p, y, reduction="sum"))

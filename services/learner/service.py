@@ -42,12 +42,12 @@ from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, dynamic_graph, metropolis_weights, run_graph
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
-from swarmmap.shared.bnn import BayesNet, predict_mean_std
+from swarmmap.shared.bnn import predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import RunConfig, task_robot
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import model_from_settings, pick_device, save_model, set_flat
+from swarmmap.shared.models import StochasticNet, model_from_settings, pick_device, save_model, set_flat
 from swarmmap.shared.protocol import (
     CHAINED_ENCODINGS,
     MAX_COVERAGE_BYTES,
@@ -548,7 +548,7 @@ def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap, points: np
     pts, (h, w) = grid.centres(cfg.learner.map_resolution_m)
     mean, std = predict_mean_std(model, pts, samples=cfg.learner.mc_samples)
     save_png(run_dir / "maps" / f"robot-{robot}-mean.png", mean.reshape(h, w))
-    if isinstance(model, BayesNet):
+    if isinstance(model, StochasticNet):
         # Darker = more uncertain, on a fixed scale (std of a probability is at most 0.5).
         save_png(run_dir / "maps" / f"robot-{robot}-std.png", np.clip(std.reshape(h, w) / 0.5, 0, 1))
         buf = io.BytesIO()

@@ -58,6 +58,12 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
     assert ens["members"] == 1 and 0 <= ens["auroc_unobserved"] <= 1
     # one Bayesian member: its own spread, as its maps have it (the same 50 draws, seed 0)
     assert ens["std_observed"] == pytest.approx(doc["robots"]["0"]["std_observed"], rel=1e-3)
+    # the spread of the logits instead: the same draws, unsquashed, so larger everywhere
+    logit = run("score", str(out / "runs" / "kl-0.0001"), "--std-of", "logit")
+    assert "auroc_unobserved" in logit.stdout
+    lz = json.loads((folder / "scores.json").read_text())
+    assert lz["std_of"] == "logit" and lz["robots"]["0"]["std_observed"] > doc["robots"]["0"]["std_observed"]
+    assert 0 <= lz["robots"]["0"]["auroc_error"] <= 1
     # Run again: the finished runs are reused; with other settings they are not.
     again = run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "1e-4", "--rooms", "1", "--out", str(out))
     assert "reusing it" in again.stderr
@@ -65,6 +71,18 @@ def test_kl_sweep_writes_maps_csv_and_report(tmp_path):
     assert "reusing it" not in other.stderr
     assert [float(r["final_val_bce"]) for r in csv.DictReader((out / "kl_sweep.csv").open())] != [
         float(rows[0]["final_val_bce"])], "a run of 5 rounds reported the 10-round result"
+
+
+def test_mc_dropout_agent_saves_and_scores_its_spread(tmp_path):
+    """The MC-dropout baseline through the same experiment: its maps have a std and are scored."""
+    out = tmp_path / "drop"
+    run("kl-sweep", "--preset", "smoke", "--rounds", "10", "--kl-weights", "0", "--rooms", "1", "--out", str(out),
+        "--set", "learner.model=dropout", "--set", "learner.dropout_p=0.2")
+    row = next(csv.DictReader((out / "kl_sweep.csv").open()))
+    assert 0 < float(row["final_val_bce"]) < 0.7
+    assert 0 < float(row["std_observed"]) <= 0.5 and 0 <= float(row["auroc_error"]) <= 1
+    assert "MC dropout p 0.2" in (out / "report.md").read_text()
+    assert (out / "runs" / "kl-0" / "maps" / "robot-0-std.png").exists()
 
 
 def test_regularization_writes_curves_table_maps_and_report(tmp_path):

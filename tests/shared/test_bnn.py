@@ -83,3 +83,65 @@ def test_batched_passes_equal_one_forward_pass_per_weight_draw():
     again = predict_mean_std(net, pts, samples=7, seed=11, sample_chunk=3)
     np.testing.assert_allclose(again[0], mean, atol=1e-6)
     assert std.max() > 0.01, "the draws should disagree at rho -1.5"
+
+
+def test_logit_spread_is_the_probability_spread_unsquashed():
+    """std_of="logit" takes the spread of the same draws before the sigmoid: for narrow draws
+    the probability's spread is p (1 - p) times it (the sigmoid's slope), the mean is unchanged."""
+    net = build_model([2, 16, 24, 1], 5.0, (0, 0, 4, 4), seed=3, kind="bnn", rho_init=-6.0)
+    pts = np.random.default_rng(2).uniform(0, 4, size=(400, 2))
+    mean, std_p = predict_mean_std(net, pts, samples=20, seed=5)
+    mean_z, std_z = predict_mean_std(net, pts, samples=20, seed=5, std_of="logit")
+    np.testing.assert_array_equal(mean, mean_z)
+    slope = mean * (1 - mean)
+    np.testing.assert_allclose(std_p, slope * std_z, rtol=0.02, atol=1e-6)
+    assert (std_z > std_p).all()
+    with pytest.raises(ValueError, match="std_of"):
+        predict_mean_std(net, pts, std_of="variance")
+
+
+def test_local_reparameterisation_draws_each_example_from_the_same_gaussian():
+    """With the local trick a layer's outputs follow N(x mu_W + mu_b, x^2 sigma_W^2 + sigma_b^2),
+    as whole weight draws give; the examples of one batch get independent noise."""
+    torch.manual_seed(0)
+    plain = BayesLinear(3, 2, rho_init=-1.0)
+    local = BayesLinear(3, 2, rho_init=-1.0, local_reparam=True)
+    local.load_state_dict(plain.state_dict())
+    x = torch.tensor([[0.5, -1.0, 2.0]])
+    with torch.no_grad():
+        a = torch.cat([plain(x) for _ in range(20000)])
+        b = local(x.expand(20000, 3))
+    torch.testing.assert_close(a.mean(0), b.mean(0), atol=0.03, rtol=0)
+    torch.testing.assert_close(a.std(0), b.std(0), atol=0.03, rtol=0.03)
+    with torch.no_grad():
+        twice = local(x.expand(2, 3))
+    assert not torch.equal(twice[0], twice[1])
+    local(x).sum().backward()
+    assert local.weight_rho.grad.abs().sum() > 0  # the spread still learns
+
+
+def test_mc_dropout_network_carries_a_fourier_state_and_reports_a_spread(tmp_path):
+    four = build_model([2, 32, 16, 1], 5.0, (0, 0, 4, 4), seed=1)
+    drop = build_model([2, 32, 16, 1], 5.0, (0, 0, 4, 4), seed=1, kind="dropout", dropout_p=0.2)
+    assert [p.shape for p in drop.parameters()] == [p.shape for p in four.parameters()]  # the same State
+    for a, b in zip(drop.parameters(), four.parameters()):
+        torch.testing.assert_close(a, b)
+    pts = np.random.default_rng(0).uniform(0, 4, size=(500, 2))
+    mean, std = predict_mean_std(drop, pts, samples=30, seed=4)
+    assert (std > 0).mean() > 0.9
+    again = predict_mean_std(drop, pts, samples=30, seed=4)
+    np.testing.assert_array_equal(mean, again[0])
+    # The mean of many passes is close to the network with every unit kept (dropout's scaling).
+    many = predict_mean_std(drop, pts, samples=400, seed=1)[0]
+    assert np.abs(many - predict_mean_std(four, pts)[0]).mean() < 0.02
+    with drop.noise(0):
+        p1 = drop(torch.as_tensor(pts[:5], dtype=torch.float32))
+    with drop.noise(0):
+        p2 = drop(torch.as_tensor(pts[:5], dtype=torch.float32))
+    torch.testing.assert_close(p1, p2)
+    save_model(drop, tmp_path / "d.pt")
+    back = load_model(tmp_path / "d.pt")
+    assert back.p == 0.2
+    np.testing.assert_array_equal(predict_mean_std(back, pts, samples=5)[1], predict_mean_std(drop, pts, samples=5)[1])
+    none = build_model([2, 32, 16, 1], 5.0, (0, 0, 4, 4), seed=1, kind="dropout", dropout_p=0.0)
+    assert (predict_mean_std(none, pts, samples=5)[1] == 0).all()

@@ -101,6 +101,14 @@ def test_centralized_needs_the_inproc_transport():
         load(["up", "--algorithm", "centralized"])
 
 
+def test_the_prior_on_unseen_space_needs_a_bayesian_network():
+    with pytest.raises(ConfigError, match="needs model bnn"):
+        load(["up", "--model", "dropout", "--set", "learner.unseen_weight=0.05"])
+    assert load(["up", "--model", "dropout", "--set", "learner.dropout_p=0.3"]).learner.dropout_p == 0.3
+    with pytest.raises(ConfigError, match="dropout_p"):
+        load(["up", "--model", "dropout", "--set", "learner.dropout_p=1"])
+
+
 def test_dinno_fast_keeps_dinnos_setting_and_changes_only_the_schedule():
     fast, published = load(["up", "--preset", "dinno-fast"]), load(["up", "--preset", "dinno"])
     assert fast.world == published.world and fast.lidar == published.lidar and fast.robots == published.robots
