@@ -193,11 +193,17 @@ class Launcher:
                 raise RuntimeError(f"{service} {sorted(missing)} not alive after {self.cfg.up.start_timeout_s:.0f} s")
             self.stop.wait(0.1)
 
+    def grace(self, child: Child) -> float:
+        """How long ``child`` gets to finish once the run is over: the observer maps the final
+        States, a learner writes its model and maps; the others only close."""
+        up = self.cfg.up
+        return {"observer": up.observer_grace_s, "learner": up.learner_grace_s}.get(child.service, up.stop_grace_s)
+
     def let_leave(self) -> None:
         """Wait until every service but the router has exited by itself, at most its grace time."""
         start = time.monotonic()
         for c in self.children:
-            grace = self.cfg.up.observer_grace_s if c.service == "observer" else self.cfg.up.stop_grace_s
+            grace = self.grace(c)
             if c.service != "router":
                 try:
                     c.proc.wait(max(0.0, start + grace - time.monotonic()))
@@ -212,7 +218,7 @@ class Launcher:
             for c in running:
                 c.proc.terminate()
             start = time.monotonic()
-            for c in running:
+            for c in running:  # stopped, a learner leaves its outputs: only the observer keeps its long grace
                 grace = self.cfg.up.observer_grace_s if c.service == "observer" else self.cfg.up.stop_grace_s
                 try:
                     c.proc.wait(max(0.0, start + grace - time.monotonic()))

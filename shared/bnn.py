@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from swarmmap.shared.models import DropoutNet, NoiseSource, StochasticNet
+from swarmmap.shared.models import DropoutNet, MCDropout, NoiseSource, StochasticNet
 
 
 def gaussian_kl(mu0: torch.Tensor, sigma0: torch.Tensor, mu1: torch.Tensor | float, sigma1: torch.Tensor | float) -> torch.Tensor:
@@ -235,27 +235,33 @@ def predict_mean_std(model: nn.Module, points: np.ndarray, samples: int = 50, ba
 
 
 class DropoutPlan:
-    """The S-pass evaluation of a :class:`DropoutNet`: the sine layer once per point, then
-    every pass's masks at once over the points repeated S times."""
+    """The S-pass evaluation of a :class:`DropoutNet`, laid out like :class:`MapPlan`: each pass
+    draws one mask per dropout layer for the whole map (a sub-network, as a BNN's pass draws
+    its weights once), so the result does not depend on how the points are chunked, and the
+    sine layer runs once per point. Each point's passes follow the distribution of dropout's
+    passes in training, where masks are drawn per example."""
 
     def __init__(self, model: DropoutNet, samples: int, generator: torch.Generator | None):
-        self.model, self.samples, self.generator = model, samples, generator
+        self.model, self.samples = model, samples
+        self.layers = [x for m in model.seq for x in (m if isinstance(m, nn.Sequential) else [m])]
+        self.masks = {}
+        for i, m in enumerate(self.layers):
+            if isinstance(m, MCDropout) and m.p > 0:
+                width = next(x for x in self.layers[i + 1 :] if isinstance(x, nn.Linear)).in_features
+                draw = torch.rand((samples, 1, width), generator=generator, device=model.centre.device)
+                self.masks[i] = (draw < 1.0 - m.p).to(torch.float32) / (1.0 - m.p)
         self.widths = list(model.shape[1:-1])
 
     def logits(self, xy: torch.Tensor) -> torch.Tensor:
         """Pre-sigmoid outputs (S, N) of every pass for points ``xy`` (N, 2)."""
-        layers = list(self.model.seq)
-        h = layers[0](xy - self.model.centre)
-        h = h.unsqueeze(0).expand(self.samples, -1, -1).reshape(-1, h.shape[-1])
-        saved = [m.generator for m in self.model.noise_sources()]
-        self.model.use_generator(self.generator)
-        try:
-            for m in layers[1:]:
+        h = self.layers[0](xy - self.model.centre).unsqueeze(0)  # the sine layer: (1, N, h1), shared by every pass
+        for i, m in enumerate(self.layers[1:], start=1):
+            if isinstance(m, MCDropout):
+                if i in self.masks:
+                    h = h * self.masks[i]
+            else:
                 h = m(h)
-        finally:
-            for m, gen in zip(self.model.noise_sources(), saved):
-                m.generator = gen
-        return h.reshape(self.samples, -1).float()
+        return h.expand(self.samples, -1, -1).squeeze(-1).float()
 
 
 def _predict_deterministic(model: nn.Module, points: np.ndarray, batch: int, device: torch.device) -> np.ndarray:

@@ -333,6 +333,8 @@ class UpSettings(Section):
     stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
     observer_grace_s: float = Field(120.0, gt=0, description="how long the observer gets to map the final States and close "
                                                              "its recording once the learners are done")
+    learner_grace_s: float = Field(120.0, gt=0, description="how long a learner gets to write its model and maps once the "
+                                                            "run is over (an inproc learner writes every robot's)")
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
     restarts: int = Field(3, ge=0, description="restart a crashed learner, lidar or world up to this many times each "
                                                "(it resumes from its checkpoint and rejoins); 0: a crash ends the run")

@@ -4,7 +4,9 @@
 sigmoid output, mapping a world point (x, y) in metres to an occupancy probability. Inputs are
 taken in metres from the map's centre (a fixed buffer, so a saved model is self-contained), so
 the sine layer's ``scale`` means the same spatial frequency on every plan. Parameters travel
-as one flat float32 vector (DiNNO's ``parameters_to_vector``).
+as one flat float32 vector (DiNNO's ``parameters_to_vector``). :class:`DropoutNet` is the
+FourierNet with MC dropout, the baseline users know for a network's uncertainty; it and the
+paper's BayesNet are :class:`StochasticNet` s, whose passes draw noise from one generator.
 """
 
 from __future__ import annotations

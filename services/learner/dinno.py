@@ -29,9 +29,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from swarmmap.shared.bnn import BayesNet, function_prior_kl, gaussian_kl, is_rho, sampled_logits
+from swarmmap.shared.bnn import BayesNet, DropoutPlan, function_prior_kl, gaussian_kl, is_rho, sampled_logits
 from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.models import StochasticNet, flatten_into, set_flat
+from swarmmap.shared.models import DropoutNet, StochasticNet, flatten_into, set_flat
 from swarmmap.shared.unseen import Coverage
 
 
@@ -484,10 +484,13 @@ def validation_bce(model: torch.nn.Module, points: torch.Tensor, labels: torch.T
     """Mean binary cross-entropy of ``model`` over a validation set (for a Bayesian or MC-dropout
     network, of its prediction: the mean of the sampled passes' probabilities, 10 passes)."""
     total = 0.0
-    stochastic = isinstance(model, StochasticNet)
     for s in range(0, len(points), batch):
         xy, y = points[s : s + batch], labels[s : s + batch]
-        if stochastic:
+        if isinstance(model, DropoutNet):  # one mask per pass for the batch, as its maps draw them
+            plan = DropoutPlan(model, 10, torch.Generator(device=xy.device).manual_seed(s))
+            p = torch.cat([torch.sigmoid(plan.logits(xy[c : c + 4096])).mean(0) for c in range(0, len(xy), 4096)])
+            total += float(F.binary_cross_entropy(p.clamp(1e-7, 1 - 1e-7), y, reduction="sum"))
+        elif isinstance(model, BayesNet):
             with model.noise(seed=s):
                 p = torch.stack([model(xy) for _ in range(10)]).mean(0).clamp(1e-7, 1 - 1e-7)
             total += float(F.binary_cross_entropy(p, y, reduction="sum"))
