@@ -199,7 +199,8 @@ def predict_mean_std(model: nn.Module, points: np.ndarray, samples: int = 50, ba
     ``samples``) over chunks of points (``points_per_chunk``, by default sized so one group's
     activations take about 8 MB; ``batch`` caps it). ``dtype=torch.bfloat16`` runs the
     products in bf16 where :func:`fast_bf16` says the hardware has it; means and spreads are
-    accumulated in float64. An MC-dropout network draws its masks per point and pass."""
+    accumulated in float64. An MC-dropout network (:class:`DropoutPlan`) draws one mask per
+    pass and layer for the whole map, the same way."""
     if std_of not in ("probability", "logit"):
         raise ValueError(f"std_of must be probability or logit, got {std_of!r}")
     device = next(model.parameters()).device
