@@ -84,9 +84,14 @@ def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
 def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float]]:
     """Uncertainty scores of every robot's maps in a finished bnn run; observed cells are the
     ones within ``radius_m`` of any robot's training point."""
-    paths = sorted((run_dir / "maps").glob("robot-*.npz"), key=lambda p: int(p.stem.split("-")[1]))
-    robots = [int(p.stem.split("-")[1]) for p in paths]
+    robots = list(robot_files(run_dir / "maps", ".npz"))
     return dict(zip(robots, score_maps(run_dir, [load_maps(run_dir, r) for r in robots], radius_m)))
+
+
+def robot_files(folder: Path, suffix: str) -> dict[int, Path]:
+    """The ``robot-<i><suffix>`` files in ``folder``, by robot id in increasing order."""
+    found = {int(p.name[len("robot-") : -len(suffix)]): p for p in folder.glob(f"robot-*{suffix}")}
+    return dict(sorted(found.items()))
 
 
 def truth_grid(run_dir: Path):
@@ -132,14 +137,14 @@ def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str
     res = learner.map_resolution_m
     grid = truth_grid(run_dir)
     pts, (h, w) = grid.centres(res)
-    paths = sorted((run_dir / "models").glob("robot-*.pt"), key=lambda p: int(p.stem.split("-")[1]))
+    paths = robot_files(run_dir / "models", ".pt")
     if not paths:
         raise FileNotFoundError(f"{run_dir / 'models'}: no robot-<i>.pt (the run did not finish?)")
     maps = {}
-    for path in paths:
+    for robot, path in paths.items():
         mean, std = predict_mean_std(load_model(path), pts.astype(np.float32), samples=learner.mc_samples, std_of=std_of)
-        maps[int(path.stem.split("-")[1])] = {"mean": mean.reshape(h, w), "std": std.reshape(h, w),
-                                              "resolution": np.float64(res), "origin": np.asarray(grid.origin)}
+        maps[robot] = {"mean": mean.reshape(h, w), "std": std.reshape(h, w), "resolution": np.float64(res),
+                       "origin": np.asarray(grid.origin)}
     return maps
 
 
