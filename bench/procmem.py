@@ -30,18 +30,39 @@ def children(pid: int) -> set[int]:
     return out
 
 
-def memory_kib(pid: int) -> tuple[str, int, int]:
-    """(command line, RSS KiB, PSS KiB) of ``pid``; ('', 0, 0) when it is gone."""
+def command(pid: int) -> str:
+    """The command line of ``pid`` ('' when it is gone)."""
     try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        fields = {}
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def rss_kib(pid: int) -> tuple[int, int]:
+    """(RSS KiB now, peak RSS KiB so far: the kernel's high-water mark) of ``pid``; (0, 0) when
+    it is gone. Cheap: /proc/<pid>/status walks no page tables."""
+    fields = {}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            name, _, rest = line.partition(":")
+            if name in ("VmRSS", "VmHWM"):
+                fields[name] = int(rest.split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0, 0
+    return fields.get("VmRSS", 0), fields.get("VmHWM", 0)
+
+
+def pss_kib(pid: int) -> int:
+    """Proportional set size of ``pid`` in KiB (0 when it is gone). Costly: the kernel walks
+    the process's page tables (about 5 ms for a learner holding torch), so it is sampled rarely."""
+    try:
         for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
             name, _, rest = line.partition(":")
-            if name in ("Rss", "Pss"):
-                fields[name] = int(rest.split()[0])
-        return cmd, fields.get("Rss", 0), fields.get("Pss", 0)
-    except (OSError, ValueError):
-        return "", 0, 0
+            if name == "Pss":
+                return int(rest.split()[0])
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
 
 
 def cpu_seconds(pid: int) -> float:
@@ -64,34 +85,49 @@ def service_of(cmd: str) -> str:
 
 
 class MemorySampler(threading.Thread):
-    """Peak RSS of each learner process and peak PSS of the whole process tree of a run."""
+    """Peak RSS of each learner process and peak PSS of the whole process tree of a run.
 
-    def __init__(self, root: int, every: float = 0.25):
+    Every ``every`` s it reads each process's CPU time and RSS (cheap); every ``pss_every`` s
+    the whole tree's PSS (a page-table walk per process: 0.3 s of CPU for the 67 processes of a
+    32-robot run, which sampled every 0.25 s took a sizeable share of a 2-core machine from the
+    run it measured, more the larger the team). ``own_cpu_s`` is the CPU the sampler itself
+    used, for the benches to print."""
+
+    def __init__(self, root: int, every: float = 0.25, pss_every: float = 5.0):
         super().__init__(daemon=True)
-        self.root, self.every = root, every
-        self.learner_peak: dict[int, int] = {}
+        self.root, self.every, self.pss_every = root, every, pss_every
+        self.learner_peak: dict[int, int] = {}  # pid -> KiB, the kernel's high-water mark
         self.total_peak = 0  # KiB, PSS of every process of the run
         self.learner_series: list[tuple[float, int]] = []  # (seconds, KiB of every learner together)
         self.cpu: dict[int, tuple[str, float]] = {}  # pid -> (service, CPU seconds at its last sample)
+        self.own_cpu_s = 0.0
         self.stop = threading.Event()
 
     def run(self) -> None:
         t0 = time.monotonic()
+        cpu0 = time.thread_time()
+        commands: dict[int, str] = {}
+        next_pss = t0
         while not self.stop.is_set():
-            total = learners = 0
-            for pid in children(self.root) | {self.root}:
-                cmd, kib, pss = memory_kib(pid)
-                total += pss
-                if cmd:
-                    self.cpu[pid] = (service_of(cmd), cpu_seconds(pid))
+            learners = 0
+            pids = children(self.root) | {self.root}
+            for pid in pids:
+                cmd = commands.get(pid) or command(pid)
+                if not cmd:
+                    continue
+                commands[pid] = cmd
+                self.cpu[pid] = (service_of(cmd), cpu_seconds(pid))
                 if " learner " in cmd:
-                    self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), kib)
-                    learners += kib
-            self.total_peak = max(self.total_peak, total)
+                    now, peak = rss_kib(pid)
+                    self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), peak)
+                    learners += now
+            if time.monotonic() >= next_pss:
+                self.total_peak = max(self.total_peak, sum(pss_kib(pid) for pid in pids))
+                next_pss = time.monotonic() + self.pss_every
             if learners:
                 self.learner_series.append((time.monotonic() - t0, learners))
+            self.own_cpu_s = time.thread_time() - cpu0
             self.stop.wait(self.every)
-
 
     def cpu_by_service(self) -> dict[str, float]:
         """CPU seconds each kind of service used (as last sampled), summed over its processes."""
