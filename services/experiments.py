@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from swarmmap.shared.compression import COMPRESSIONS
-from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, RunConfig, apply_override, resolve
+from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, STD_MODELS, ConfigError, RunConfig, apply_override, resolve
 
 log = logging.getLogger("experiment")
 
@@ -683,7 +683,7 @@ def consensus(args: argparse.Namespace) -> int:
                 sent.setdefault(cell, {})[seed] = per_learner
                 curves.setdefault(cell, []).append(metrics)
                 byte_curves.setdefault(cell, []).append(wire)
-                sc = mean_scores(score_run(run_dir)) if base.learner.model != "fourier" else {k: float("nan") for k in SCORE_KEYS}
+                sc = mean_scores(score_run(run_dir)) if base.learner.model in STD_MODELS else {k: float("nan") for k in SCORE_KEYS}
                 scored.setdefault(cell, []).append(sc)
                 rows.append([cons, link, every, comp, seed, final, per_learner] + [sc[k] for k in SCORE_KEYS])
     finally:
@@ -787,7 +787,7 @@ def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list
             ref = (cell[0], 1.0, 1, "none")
             ratio = np.mean([sent[ref][s] for s in seeds]) / np.mean([sent[cell][s] for s in seeds])
             lines.append(f"| {cell[3]} | {cell[0]} | {ratio:.1f}x fewer | {100 * (mean(cell) - mean(ref)) / mean(ref):+.1f}% |")
-    if base.learner.model != "fourier":
+    if base.learner.model in STD_MODELS:
         lines += ["", "Uncertainty scores, mean over agents and seeds:", ""]
         lines += scores_table([(cell_name(*c), {k: float(np.nanmean([x[k] for x in scored[c]])) for k in SCORE_KEYS})
                                for c in cells])

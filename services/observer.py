@@ -44,7 +44,7 @@ from swarmmap.shared.bus import Bus
 from swarmmap.shared.compression import Decompressor
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import StochasticNet, model_from_settings, param_count, pick_device, set_flat
+from swarmmap.shared.models import StochasticNet, has_std, model_from_settings, param_count, pick_device, set_flat
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, Tensor, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
@@ -290,7 +290,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     rec = rr.RecordingStream("swarmmap", recording_id=cfg.run_id)
-    bp = blueprint(cfg.robots, cfg.learner.model != "fourier")
+    bp = blueprint(cfg.robots, has_std(cfg.learner.model))
     sinks = open_sinks(cfg, rec, bp)
     log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
     obs = Observer(cfg, rec, device)

@@ -36,6 +36,10 @@ class Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+# The learner models whose maps have a standard deviation (stochastic networks); a FourierNet's have none.
+STD_MODELS = ("bnn", "dropout")
+
+
 class ZenohSettings(Section):
     """How a service's Zenoh session is opened; unset fields keep Zenoh's own defaults."""
 

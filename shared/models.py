@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from swarmmap.shared.atomic import atomic_write_bytes
+from swarmmap.shared.config import STD_MODELS
 
 
 class SirenLayer(nn.Module):
@@ -134,6 +135,14 @@ class DropoutNet(StochasticNet):
 
 
 MODEL_KINDS = ("fourier", "bnn", "dropout")
+
+
+def has_std(kind: str) -> bool:
+    """Whether a model of ``kind`` is stochastic (:class:`StochasticNet`): its maps have a
+    standard deviation (BNN, MC dropout); a FourierNet's have none."""
+    if kind not in MODEL_KINDS:
+        raise ValueError(f"unknown model {kind!r}; allowed: {', '.join(MODEL_KINDS)}")
+    return kind in STD_MODELS
 
 
 def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int,

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from swarmmap.shared.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std, sample_weights
-from swarmmap.shared.models import build_model, load_model, save_model
+from swarmmap.shared.models import MODEL_KINDS, StochasticNet, build_model, has_std, load_model, save_model
 
 
 def test_layer_kl_matches_a_monte_carlo_estimate():
@@ -145,3 +145,13 @@ def test_mc_dropout_network_carries_a_fourier_state_and_reports_a_spread(tmp_pat
     np.testing.assert_array_equal(predict_mean_std(back, pts, samples=5)[1], predict_mean_std(drop, pts, samples=5)[1])
     none = build_model([2, 32, 16, 1], 5.0, (0, 0, 4, 4), seed=1, kind="dropout", dropout_p=0.0)
     assert (predict_mean_std(none, pts, samples=5)[1] == 0).all()
+
+
+def test_has_std_names_exactly_the_stochastic_models():
+    """The observer's std panel and the experiments' uncertainty scores ask ``has_std``: it must
+    agree with what each kind of model is."""
+    for kind in MODEL_KINDS:
+        model = build_model([2, 8, 8, 1], 1.0, (0.0, 1.0, 0.0, 1.0), 0, kind)
+        assert has_std(kind) == isinstance(model, StochasticNet), kind
+    with pytest.raises(ValueError, match="unknown model"):
+        has_std("gaussian-process")
