@@ -116,7 +116,8 @@ class MemorySampler(threading.Thread):
                 if not cmd:
                     continue
                 commands[pid] = cmd
-                self.cpu[pid] = (service_of(cmd), cpu_seconds(pid))
+                # CPU time only grows; a process that exits between the listing and this read gives 0
+                self.cpu[pid] = (service_of(cmd), max(cpu_seconds(pid), self.cpu.get(pid, ("", 0.0))[1]))
                 if " learner " in cmd:
                     now, peak = rss_kib(pid)
                     self.learner_peak[pid] = max(self.learner_peak.get(pid, 0), peak)

@@ -90,5 +90,6 @@ def run_team(args: argparse.Namespace, n: int, run_dir: Path) -> float | None:
           + f"; this bench's memory sampling {sampler.own_cpu_s:.1f}", flush=True)
     return rt / n
 
+
 if __name__ == "__main__":
     main()
