@@ -107,6 +107,7 @@ class MemorySampler(threading.Thread):
         t0 = time.monotonic()
         cpu0 = time.thread_time()
         commands: dict[int, str] = {}
+        root_cmd = command(self.root)
         next_pss = t0
         while not self.stop.is_set():
             learners = 0
@@ -115,7 +116,8 @@ class MemorySampler(threading.Thread):
                 cmd = commands.get(pid) or command(pid)
                 if not cmd:
                     continue
-                commands[pid] = cmd
+                if pid == self.root or cmd != root_cmd:  # a child forked but not yet exec'd shows the launcher's
+                    commands[pid] = cmd
                 # CPU time only grows; a process that exits between the listing and this read gives 0
                 self.cpu[pid] = (service_of(cmd), max(cpu_seconds(pid), self.cpu.get(pid, ("", 0.0))[1]))
                 if " learner " in cmd:

@@ -42,6 +42,8 @@ def main() -> None:
     ap.add_argument("--shape", default="2,32,32,1", help="the tiny model's layer widths")
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--repeat", type=int, default=3, help="runs of every team size, interleaved (2, 4, .., 32, 2, 4, ..)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="a further setting for every run, as swarmmap up --set")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run directories here")
     args = ap.parse_args()
     base = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
@@ -72,7 +74,7 @@ def run_team(args: argparse.Namespace, n: int, run_dir: Path) -> float | None:
            "--rounds", str(args.rounds), "--no-observer", "--run-dir", str(run_dir),
            "--set", f"learner.graph={args.graph}", "--set", f"learner.model_shape=[{args.shape}]",
            "--set", f"learner.batch_size={args.batch}", "--set", f"learner.eval_every={args.rounds // 3}",
-           "--set", "learner.checkpoint_every=0"]
+           "--set", "learner.checkpoint_every=0"] + [a for kv in args.sets for a in ("--set", kv)]
     status, err, wall, sampler = run_sampled(cmd, env=os.environ | {"OMP_NUM_THREADS": "1"})
     if status != 0:
         print(f"team of {n}: swarmmap up failed ({status}): {err[-1500:]}", flush=True)

@@ -25,6 +25,7 @@ import ctypes
 import json
 import logging
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -44,6 +45,7 @@ from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.protocol import Keys, Metrics
 from swarmmap.shared.recording import RecordingError, read_recording
 from swarmmap.shared.secrets import access_policy, write_secrets
+from swarmmap.shared.slots import slots_dir
 
 log = logging.getLogger("up")
 
@@ -91,6 +93,14 @@ def prepare(cfg: RunConfig) -> RunConfig:
         wait_for = cfg.world.wait_for + ([] if "observer" in cfg.world.wait_for else ["observer"])
         cfg = cfg.model_copy(update={"observer": obs, "world": cfg.world.model_copy(update={"wait_for": wait_for})})
     return cfg
+
+
+def host_cores() -> int:
+    """The cores this process may run on (its affinity: a container's or a SLURM job's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
 
 
 def write_config(cfg: RunConfig) -> Path:
@@ -145,7 +155,11 @@ class Launcher:
         self.router_endpoint = f"tcp/127.0.0.1:{free_port()}"
         zenoh = cfg.zenoh.model_copy(update={"mode": "peer", "connect": [self.router_endpoint],
                                              "listen": ["tcp/127.0.0.1:0"], "multicast_scouting": False})
-        self.cfg = prepare(cfg.model_copy(update={"zenoh": zenoh}))
+        cfg = cfg.model_copy(update={"zenoh": zenoh})
+        if cfg.learner.compute_slots is None and cfg.learner.transport == "zenoh" and cfg.robots > (cores := host_cores()):
+            # every learner on this host, more than its cores: each round's training in turns, not sliced (shared/slots.py)
+            cfg = cfg.model_copy(update={"learner": cfg.learner.model_copy(update={"compute_slots": cores})})
+        self.cfg = prepare(cfg)
         self.run_dir = self.cfg.run_dir
         self.keys = Keys(self.cfg.key_prefix, self.cfg.run_id)
         self.children: list[Child] = []
@@ -262,6 +276,8 @@ class Launcher:
             status = 1
         finally:
             self.shutdown()
+            if cfg.learner.compute_slots:
+                shutil.rmtree(slots_dir(cfg.run_id), ignore_errors=True)
             self.complete_summary(time.monotonic() - t0, status)
         return status
 

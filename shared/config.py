@@ -244,6 +244,10 @@ class LearnerSettings(Section):
     keyframe_every: int = Field(100, ge=1, description="topk, sign, quant, lowrank: every this many States, one carries the whole "
                                                        "vector (quant: at 16 bits)")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
+    compute_slots: int | None = Field(
+        None, ge=0, description="at most this many learner processes of one host train at once (lock files in its "
+                                "temporary directory; 0: no limit; unset: swarmmap up sets the host's cores when it "
+                                "starts more learners than that, else no limit)")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
 
     @model_validator(mode="after")

@@ -23,6 +23,7 @@ import logging
 import os
 import threading
 import time
+from contextlib import nullcontext
 
 import numpy as np
 import torch
@@ -58,6 +59,7 @@ from swarmmap.shared.protocol import (
     all_finite,
     encode_state,
 )
+from swarmmap.shared.slots import ComputeSlots, slots_dir
 
 log = logging.getLogger("learner")
 
@@ -136,6 +138,11 @@ class RobotLearner:
         self.stats = ExchangeStats()
         self.wire: MemoryTransport | None = None  # in process: its end of the hub, which counts the bytes
         self.compute_s = 0.0
+        # Zenoh, one learner a process, by rounds: at most compute_slots of this host's learners train
+        # at once (on a clock a learner never waits for its neighbours: it would keep its slot)
+        self.slots = (ComputeSlots(slots_dir(cfg.run_id), self.s.compute_slots, home=robot)
+                      if self.s.compute_slots and self.s.transport == "zenoh" and not self.s.exchange_every_s
+                      else nullcontext())
         self.t_start = 0.0
         self.start_round = 0
         self.start_state: np.ndarray | None = None
@@ -294,9 +301,10 @@ class RobotLearner:
         """Algorithm 1's round ``c``: training rounds c E .. c E + E - 1 (E = exchange_every), the
         first with the neighbours' States of this exchange, the others against them as they were."""
         e = self.s.exchange_every
-        self.checkpoint_if_due(c, theta)
-        for k in range(c * e, (c + 1) * e):
-            theta = self.train_round(k, theta, peers, exchange=k == c * e)
+        with self.slots:  # (its neighbours' next States cannot come before it sends its own: it waits without one)
+            self.checkpoint_if_due(c, theta)
+            for k in range(c * e, (c + 1) * e):
+                theta = self.train_round(k, theta, peers, exchange=k == c * e)
         return theta
 
     def timed_update(self, k: int, theta: np.ndarray, fresh: dict[int, np.ndarray]) -> np.ndarray:
@@ -375,6 +383,9 @@ class RobotLearner:
         m = self.publish_metrics(s.rounds, final, peers, final=True)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
+        if isinstance(self.slots, ComputeSlots):
+            log.info("robot %d: %.1f s of its rounds waiting for one of this host's %d compute slots", robot,
+                     self.slots.wait_s, s.compute_slots)
         if self.node.coverage is not None:
             log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
                      robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))

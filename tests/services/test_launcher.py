@@ -7,7 +7,7 @@ import sys
 import threading
 import time
 
-from swarmmap.services.launcher import Child, Launcher
+from swarmmap.services.launcher import Child, Launcher, host_cores
 from swarmmap.shared.config import RunConfig, UpSettings
 
 
@@ -34,3 +34,17 @@ def test_a_learner_gets_its_own_grace_to_write_its_outputs(tmp_path):
         for c in (world, learner):
             c.proc.kill()
             c.proc.wait()
+
+
+def test_up_gives_learners_compute_slots_when_they_outnumber_the_cores(tmp_path):
+    """More learner processes than this host's cores: ``up`` lets at most as many train at once
+    as there are cores; fewer, in process, or a value the user set: left as it is."""
+    cores = host_cores()
+    many = Launcher(RunConfig(run_dir=tmp_path / "a", robots=cores + 1), threading.Event()).cfg.learner
+    assert many.compute_slots == cores
+    few = Launcher(RunConfig(run_dir=tmp_path / "b", robots=cores), threading.Event()).cfg.learner
+    assert not few.compute_slots
+    inproc = RunConfig.model_validate({"run_dir": str(tmp_path / "c"), "robots": cores + 1, "learner": {"transport": "inproc"}})
+    assert not Launcher(inproc, threading.Event()).cfg.learner.compute_slots
+    off = RunConfig.model_validate({"run_dir": str(tmp_path / "d"), "robots": cores + 1, "learner": {"compute_slots": 0}})
+    assert Launcher(off, threading.Event()).cfg.learner.compute_slots == 0
