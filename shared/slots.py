@@ -10,6 +10,10 @@ of its own until its round's steps are done; the others wait in the kernel, not 
 A slot is an exclusive ``flock`` on one of N files in a directory of this host's temporary
 directory (per user and run): the kernel releases it when its holder exits or is killed, so
 a crashed learner never keeps a slot. Containers with their own ``/tmp`` do not share slots.
+When every slot is taken, the waiters queue on one more lock file (sleeping in the kernel) and
+only the one at the head of the line looks for a free slot, every ``POLL_S``: a lock cannot be
+waited for as "any of N", and waiting on one given slot let the other core stand idle while
+its own queue was empty (measured: DiNNO's 7 robots on 2 cores took 11% longer so).
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
+POLL_S = 0.0005  # how often the head of the line looks for a free slot (one process a host polls)
+
 
 def slots_dir(run_id: str) -> Path:
     """The run's slot directory on this host: per user and run, never shared between hosts."""
@@ -27,32 +33,42 @@ def slots_dir(run_id: str) -> Path:
 
 
 class ComputeSlots:
-    """``with slots:`` holds one of ``n`` host-wide slots; ``home`` spreads waiters over them."""
+    """``with slots:`` holds one of ``n`` host-wide slots (tried from ``home`` on, spreading the team over them)."""
 
     def __init__(self, directory: Path, n: int, home: int = 0):
         if n < 1:
             raise ValueError(f"compute slots must be at least 1, got {n}")
         directory.mkdir(mode=0o700, parents=True, exist_ok=True)
         self.fds = [os.open(directory / f"slot-{i}", os.O_RDWR | os.O_CREAT, 0o600) for i in range(n)]
+        self.line = os.open(directory / "line", os.O_RDWR | os.O_CREAT, 0o600)
         self.home = home % n
         self.held: int | None = None
         self.wait_s = 0.0  # time spent waiting for a slot, over all rounds
 
-    def __enter__(self) -> ComputeSlots:
+    def try_take(self) -> bool:
+        """Take a free slot, from this process's own on; False when all are taken."""
         n = len(self.fds)
-        for i in range(n):  # a free slot first, from this learner's own on
+        for i in range(n):
             fd = self.fds[(self.home + i) % n]
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 continue
             self.held = fd
+            return True
+        return False
+
+    def __enter__(self) -> ComputeSlots:
+        if self.try_take():
             return self
         t0 = time.perf_counter()
-        fd = self.fds[self.home]
-        fcntl.flock(fd, fcntl.LOCK_EX)  # all busy: queue on its own one (released within a holder's round)
+        fcntl.flock(self.line, fcntl.LOCK_EX)  # in line, asleep; the head of the line looks for a free slot
+        try:
+            while not self.try_take():
+                time.sleep(POLL_S)
+        finally:
+            fcntl.flock(self.line, fcntl.LOCK_UN)
         self.wait_s += time.perf_counter() - t0
-        self.held = fd
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -61,6 +77,6 @@ class ComputeSlots:
             self.held = None
 
     def close(self) -> None:
-        for fd in self.fds:
+        for fd in [*self.fds, self.line]:
             os.close(fd)
         self.fds = []
