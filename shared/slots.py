@@ -24,6 +24,7 @@ from __future__ import annotations
 import fcntl
 import os
 import select
+import stat
 import tempfile
 import time
 from pathlib import Path
@@ -36,6 +37,15 @@ def slots_dir(run_id: str) -> Path:
     return Path(tempfile.gettempdir()) / f"swarmmap-{os.getuid()}-compute-{run_id}"
 
 
+def own_directory(directory: Path) -> None:
+    """Refuse a slot directory that another user made or may write to (a shared ``/tmp``: a
+    stranger's directory there could hold the slots, or plant links)."""
+    st = os.lstat(directory)
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise OSError(f"{directory} is not a directory of this user's alone (owner {st.st_uid}, mode "
+                      f"{stat.filemode(st.st_mode)})")
+
+
 class ComputeSlots:
     """``with slots:`` holds one of ``n`` host-wide slots (tried from ``home`` on, spreading the team over them)."""
 
@@ -43,13 +53,18 @@ class ComputeSlots:
         if n < 1:
             raise ValueError(f"compute slots must be at least 1, got {n}")
         directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-        self.fds = [os.open(directory / f"slot-{i}", os.O_RDWR | os.O_CREAT, 0o600) for i in range(n)]
-        self.line = os.open(directory / "line", os.O_RDWR | os.O_CREAT, 0o600)
+        own_directory(directory)
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW
+        self.fds = [os.open(directory / f"slot-{i}", flags, 0o600) for i in range(n)]
+        self.line = os.open(directory / "line", flags, 0o600)
         try:
             os.mkfifo(directory / "freed", 0o600)
         except FileExistsError:
             pass
-        self.freed = os.open(directory / "freed", os.O_RDWR | os.O_NONBLOCK)  # (read-write: never an end of file)
+        self.freed = os.open(directory / "freed", os.O_RDWR | os.O_NONBLOCK | os.O_NOFOLLOW)  # (read-write: no end of file)
+        if not stat.S_ISFIFO(os.fstat(self.freed).st_mode):
+            self.close()
+            raise OSError(f"{directory / 'freed'} is not a FIFO")
         self.home = home % n
         self.held: int | None = None
         self.wait_s = 0.0  # time spent waiting for a slot, over all rounds

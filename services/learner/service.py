@@ -140,9 +140,12 @@ class RobotLearner:
         self.compute_s = 0.0
         # Zenoh, one learner a process, by rounds: at most compute_slots of this host's learners train
         # at once (on a clock a learner never waits for its neighbours: it would keep its slot)
-        self.slots = (ComputeSlots(slots_dir(cfg.run_id), self.s.compute_slots, home=robot)
-                      if self.s.compute_slots and self.s.transport == "zenoh" and not self.s.exchange_every_s
-                      else nullcontext())
+        self.slots: ComputeSlots | nullcontext = nullcontext()
+        if self.s.compute_slots and self.s.transport == "zenoh" and not self.s.exchange_every_s:
+            try:
+                self.slots = ComputeSlots(slots_dir(cfg.run_id), self.s.compute_slots, home=robot)
+            except OSError as exc:
+                log.warning("robot %d: training without compute slots: %s", robot, exc)
         self.t_start = 0.0
         self.start_round = 0
         self.start_state: np.ndarray | None = None

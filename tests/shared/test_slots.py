@@ -68,3 +68,17 @@ def test_a_killed_holder_frees_its_slot(tmp_path):
 def test_slots_must_be_positive(tmp_path):
     with pytest.raises(ValueError, match="at least 1"):
         ComputeSlots(tmp_path, 0)
+
+
+def test_a_slot_directory_others_may_write_to_is_refused(tmp_path):
+    """On a shared /tmp a stranger's (or a world-writable) directory must not hold the slots."""
+    shared = tmp_path / "slots"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)
+    with pytest.raises(OSError, match="not a directory of this user's alone"):
+        ComputeSlots(shared, 2)
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    (tmp_path / "elsewhere").mkdir(mode=0o700)
+    with pytest.raises(OSError, match="not a directory of this user's alone"):
+        ComputeSlots(link, 2)
