@@ -36,6 +36,8 @@ class Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
+MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
 # The learner models whose maps have a standard deviation (stochastic networks); a FourierNet's have none.
 STD_MODELS = ("bnn", "dropout")
 
@@ -166,7 +168,7 @@ class LearnerSettings(Section):
         "complete", description="communication graph: complete, ring, an edge-list file, or DiNNO's disk graph")
     graph_file: Path | None = Field(None, description="graph = file: YAML/JSON list of [i, j] edges")
     comm_radius_m: float = Field(15.0, gt=0, description="graph = disk: robots within this distance talk (m)")
-    model: Literal["fourier", "bnn", "dropout"] = Field(
+    model: ModelKind = Field(
         "fourier", description="DiNNO's deterministic FourierNet, the paper's Bayesian network, or a FourierNet with MC "
                                 "dropout (a baseline for the BNN's uncertainty)")
     model_shape: list[int] = Field(
@@ -223,6 +225,10 @@ class LearnerSettings(Section):
                              "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")
     consensus_min_weight: float = Field(
         0.05, gt=0, le=1, description="sigma: a node's pull on a parameter stays within [this, 2 - this] x DiNNO's")
+    sigma_memory_rounds: int = Field(
+        100, ge=0, description="sigma: a neighbour's newest State keeps pulling for up to this many rounds after it "
+                               "came, its sigma widened by how far the parameters drift a round (0: only the rounds "
+                               "it was meant for, as dinno)")
     exchange_every: int = Field(1, ge=1, description="exchange States every this many rounds; the rounds between train "
                                                      "against the neighbours' last States (rounds must be a multiple)")
     exchange_every_s: float = Field(0.0, ge=0, description="exchange on a clock instead: send the State every this many "

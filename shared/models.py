@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from swarmmap.shared.atomic import atomic_write_bytes
-from swarmmap.shared.config import STD_MODELS
+from swarmmap.shared.config import MODEL_KINDS, STD_MODELS
 
 
 class SirenLayer(nn.Module):
@@ -132,9 +132,6 @@ class DropoutNet(StochasticNet):
         super().__init__(shape, scale, bounds, hidden_layer=lambda a, b: nn.Sequential(MCDropout(p), nn.Linear(a, b)))
         self.seq[-1] = nn.Sequential(MCDropout(p), self.seq[-1])
         self.p = p
-
-
-MODEL_KINDS = ("fourier", "bnn", "dropout")
 
 
 def has_std(kind: str) -> bool:

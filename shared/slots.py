@@ -116,6 +116,8 @@ class ComputeSlots:
             pass
 
     def close(self) -> None:
+        """Let go of the files (and so of a slot still held); a second call does nothing."""
         for fd in [*self.fds, self.line, self.freed]:
-            os.close(fd)
-        self.fds = []
+            if fd is not None:
+                os.close(fd)
+        self.fds, self.line, self.freed, self.held = [], None, None, None

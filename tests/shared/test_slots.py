@@ -82,3 +82,13 @@ def test_a_slot_directory_others_may_write_to_is_refused(tmp_path):
     (tmp_path / "elsewhere").mkdir(mode=0o700)
     with pytest.raises(OSError, match="not a directory of this user's alone"):
         ComputeSlots(link, 2)
+
+
+def test_closing_lets_go_of_the_slot_once(tmp_path):
+    first = ComputeSlots(tmp_path / "slots", 1)
+    first.__enter__()
+    first.close()  # (a held slot is let go with its file)
+    first.close()
+    second = ComputeSlots(tmp_path / "slots", 1)
+    assert second.try_take()
+    second.close()
