@@ -252,6 +252,12 @@ class DinnoNode(LocalNode):
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
         timed = settings.exchange_every_s > 0 and settings.stale_rounds == 0
         self.keep_for = settings.rounds + 1 if timed else max(settings.stale_rounds, settings.exchange_every)
+        # sigma: how far each parameter moves a round (its mean square, smoothed over rounds); an
+        # outdated State's sigma is widened by its age times this (see sigma_targets)
+        self.drift: torch.Tensor | None = None
+        self.last_theta: tuple[int, torch.Tensor] | None = None
+        if self.s.consensus == "sigma" and not timed:
+            self.keep_for = max(self.keep_for, settings.sigma_memory_rounds)
 
     def state(self) -> np.ndarray:
         """[theta], or with RAMEN's consensus [theta, gradient counts]."""
@@ -299,13 +305,17 @@ class DinnoNode(LocalNode):
         kl = gaussian_kl(torch.zeros_like(sigma), sigma, 0.0, F.softplus(th_reg[:, rho]))
         return penalty + self.s.w_rho * self.rho * (kl.sum() if a_rho is None else (a_rho * kl).sum())
 
-    def targets(self, th_i: torch.Tensor, thj: torch.Tensor, cj: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Each neighbour's target z_ij (rows) and weights a_ij (None: DiNNO's, 1 everywhere)."""
+    def targets(self, k: int, ids: list[int], th_i: torch.Tensor, thj: torch.Tensor, cj: torch.Tensor | None
+                ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Each neighbour's (``ids``, rows of ``thj``) target z_ij and weights a_ij (None: DiNNO's,
+        1 everywhere) in round ``k``."""
         if self.s.consensus == "dinno":
             return (thj + th_i) / 2, None
         if self.s.consensus == "ramen":
             return ramen_targets(th_i, self.counts, thj, cj)
-        return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.s.consensus_min_weight)
+        ages = torch.tensor([k - self.known[j][0] for j in ids], dtype=th_i.dtype, device=self.device)
+        widen = None if self.drift is None or not bool((ages > 0).any()) else ages[:, None] * self.drift[None, self.mu_at]
+        return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.s.consensus_min_weight, widen)
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """One DiNNO round for this node given neighbours' States of round ``k`` (an exchange
@@ -335,8 +345,18 @@ class DinnoNode(LocalNode):
         set_flat(self.model, st[:n])
         if self.counts is not None:
             self.counts = st[n:].clone()
+        if self.s.consensus == "sigma":
+            self._track_drift(k, st[:n])
         self.rho = self.s.rho_init * self.s.rho_growth ** (k + 1)  # from the round: a node that caught up has the team's rho
         self.begin_round(k)
+
+    def _track_drift(self, k: int, theta: torch.Tensor) -> None:
+        """Smooth each parameter's squared move over the last round into ``drift`` (sigma's
+        widening of outdated States); a round missed (resumed) starts the smoothing afresh."""
+        if self.last_theta is not None and self.last_theta[0] == k - 1:
+            moved = torch.square(theta - self.last_theta[1])
+            self.drift = moved if self.drift is None else self.drift.mul_(0.9).add_(moved, alpha=0.1)
+        self.last_theta = (k, theta.clone())
 
     def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor | None) -> torch.Tensor:
         """A link's dual step. ``dinno`` (``a`` None): rho (theta_i - theta_j). ``ramen``:
@@ -382,7 +402,7 @@ class DinnoNode(LocalNode):
             thj = torch.stack([self.known[j][1] for j in ids])
             cj = torch.stack([self.known[j][2] for j in ids]) if self.counts is not None else None
             th_i = self.public_params(torch.nn.utils.parameters_to_vector(self.model.parameters()).detach())
-            th_reg, a = self.targets(th_i, thj, cj)
+            th_reg, a = self.targets(k, ids, th_i, thj, cj)
             for row, j in enumerate(ids):
                 if j in fresh:
                     step = self.dual_step(th_i, thj[row], th_reg[row], None if a is None else a[row])
@@ -434,22 +454,35 @@ def sigma_pairs(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rho_at: torch.Tensor,
-                  min_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+                  min_weight: float, widen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """``sigma`` consensus: per neighbour, the target and weight of every parameter.
 
     For each Bayesian mean, the product of the two Gaussians N(mu_i, sigma_i^2) and
     N(mu_j, sigma_j^2) has its mean at the precision-weighted midpoint
-    z = (mu_i / sigma_i^2 + mu_j / sigma_j^2) / (1 / sigma_i^2 + 1 / sigma_j^2), which this node
-    approaches with weight a = 2 sigma_i^2 / (sigma_i^2 + sigma_j^2) (1 where they are equally
-    sure, as DiNNO; towards 2 where this node is the less sure). Every other parameter (rho
-    itself, the sine layer, the output layer) keeps DiNNO's midpoint and weight 1."""
-    z = (thj + th_i) / 2
-    a = torch.ones_like(thj)
+    z = mu_i + s (mu_j - mu_i), s = sigma_i^2 / (sigma_i^2 + sigma_j^2), which this node
+    approaches with weight a = 2 s, clamped to [min_weight, 2 - min_weight] (1 where they are
+    equally sure, as DiNNO; towards 2 where this node is the less sure).
+
+    ``widen`` (one row per neighbour, one column per mean; None: every State is this round's):
+    an outdated State tells where the neighbour's mean was, not where it is, so its variance is
+    sigma_j^2 + t q (a Kalman filter's prediction step: t rounds of drift q a round). Its pull
+    weakens with age and has no floor. Every other parameter (rho itself, the sine layer, the
+    output layer) is pulled towards DiNNO's midpoint with weight 1, or for an outdated State
+    with the mean of how much the widening weakened that neighbour's pulls on its means."""
     var_i = F.softplus(th_i[rho_at]).square()
     var_j = F.softplus(thj[:, rho_at]).square()
-    share = var_i / (var_i + var_j)  # how much of the way to the neighbour's mean the product's mean lies
-    z[:, mu_at] = th_i[mu_at] + share * (thj[:, mu_at] - th_i[mu_at])
-    a[:, mu_at] = (2 * share).clamp(min_weight, 2 - min_weight)
+    share = torch.full_like(thj, 0.5)
+    floor = torch.full((len(thj), 1), min_weight, dtype=thj.dtype, device=thj.device)
+    if widen is None:
+        share[:, mu_at] = var_i / (var_i + var_j)
+    else:
+        both = var_i + var_j
+        share *= (both / (both + widen)).mean(1, keepdim=True)
+        share[:, mu_at] = var_i / (both + widen)
+        floor[(widen > 0).any(1)] = 0.0
+    z = th_i + share * (thj - th_i)
+    a = 2 * share
+    a[:, mu_at] = torch.minimum(torch.maximum(a[:, mu_at], floor), torch.tensor(2 - min_weight, device=thj.device))
     return z, a
 
 

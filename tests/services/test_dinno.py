@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from swarmmap.services.learner.dinno import DinnoNode, validation_bce
 from swarmmap.shared.config import LearnerSettings
@@ -142,6 +143,48 @@ def test_sigma_consensus_moves_the_less_sure_node_towards_the_surer_one():
     others[mu_at] = False
     torch.testing.assert_close(z[0, others], ((th_i + th_j) / 2)[others])  # rho, the sine and output layers: DiNNO's
     assert (a[0, others] == 1).all()
+
+
+def test_sigma_consensus_listens_less_to_an_outdated_state():
+    from swarmmap.services.learner.dinno import sigma_pairs, sigma_targets
+
+    model = model_from_settings(bnn_settings(consensus="sigma"), BOUNDS, 0)
+    mu_at, rho_at = sigma_pairs(model)
+    th_i = torch.nn.utils.parameters_to_vector(model.parameters()).detach()
+    th_j = th_i + 1.0
+    th_j[rho_at] = th_i[rho_at]
+    both = torch.stack([th_j, th_j])
+    var = F.softplus(th_i[rho_at]).square()
+    widen = torch.stack([torch.zeros_like(var), 3 * var])  # row 0 this round's, row 1 aged: widened by 3 sigma^2
+    z, a = sigma_targets(th_i, both, mu_at, rho_at, 0.05, widen)
+    fresh_z, fresh_a = sigma_targets(th_i, th_j[None], mu_at, rho_at, 0.05)
+    torch.testing.assert_close(z[0], fresh_z[0])  # a fresh State beside an old one: as before
+    torch.testing.assert_close(a[0], fresh_a[0])
+    # the old one: its variance sigma^2 + 3 sigma^2, so s = 1/5 of the way, weight 2/5
+    torch.testing.assert_close(a[1, mu_at], torch.full_like(var, 0.4))
+    torch.testing.assert_close(z[1, mu_at], th_i[mu_at] + 0.2)
+    others = torch.ones_like(th_i, dtype=torch.bool)
+    others[mu_at] = False
+    torch.testing.assert_close(a[1, others], torch.full_like(a[1, others], 0.4))  # without a posterior: the means' discount, 2/5
+    z, a = sigma_targets(th_i, th_j[None], mu_at, rho_at, 0.05, 1e6 * var[None])
+    assert (a[0, mu_at] < 1e-5).all()  # a State from long ago barely pulls: no floor for it
+
+
+def test_sigma_keeps_outdated_states_and_widens_them_by_the_drift():
+    s = bnn_settings(consensus="sigma", sigma_memory_rounds=10)
+    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=0)
+    assert node.keep_for == 10
+    st = node.state()
+    other = st + 0.01
+    node.update(0, st, {1: other})
+    moved = node.state()
+    assert node.drift is None  # one round seen: no move measured yet
+    node.update(1, moved, {})  # the link is down: neighbour 1's State of round 0 still pulls
+    assert 1 in node.known and node.drift is not None
+    torch.testing.assert_close(node.drift, torch.square(torch.from_numpy(moved - st)))
+    node.update(11, node.state(), {})  # its memory is over
+    assert 1 not in node.known
+    assert DinnoNode(model_from_settings(bnn_settings(), BOUNDS, 0), *toy_data(0), bnn_settings(), seed=0).keep_for == 1
 
 
 def test_sigma_needs_a_bayesian_network_and_dinno():
