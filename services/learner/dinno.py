@@ -252,9 +252,9 @@ class DinnoNode(LocalNode):
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
         timed = settings.exchange_every_s > 0 and settings.stale_rounds == 0
         self.keep_for = settings.rounds + 1 if timed else max(settings.stale_rounds, settings.exchange_every)
-        # sigma: how far each parameter moves a round (its mean square, smoothed over rounds); an
-        # outdated State's sigma is widened by its age times this (see sigma_targets)
-        self.drift: torch.Tensor | None = None
+        # sigma: each parameter's move a round, smoothed over rounds (its mean and mean square); an
+        # outdated State's sigma is widened by how far it may have moved since (see widening)
+        self.drift: tuple[torch.Tensor, torch.Tensor] | None = None
         self.last_theta: tuple[int, torch.Tensor] | None = None
         if self.s.consensus == "sigma" and not timed:
             self.keep_for = max(self.keep_for, settings.sigma_memory_rounds)
@@ -314,7 +314,7 @@ class DinnoNode(LocalNode):
         if self.s.consensus == "ramen":
             return ramen_targets(th_i, self.counts, thj, cj)
         ages = torch.tensor([k - self.known[j][0] for j in ids], dtype=th_i.dtype, device=self.device)
-        widen = None if self.drift is None or not bool((ages > 0).any()) else ages[:, None] * self.drift[None, self.mu_at]
+        widen = None if self.drift is None or not bool((ages > 0).any()) else self.widening(ages)
         return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.s.consensus_min_weight, widen)
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
@@ -351,12 +351,26 @@ class DinnoNode(LocalNode):
         self.begin_round(k)
 
     def _track_drift(self, k: int, theta: torch.Tensor) -> None:
-        """Smooth each parameter's squared move over the last round into ``drift`` (sigma's
-        widening of outdated States); a round missed (resumed) starts the smoothing afresh."""
+        """Smooth each parameter's move over the last round into ``drift`` (its mean and mean
+        square, weight 0.9 to the past); a round missed (resumed) starts the smoothing afresh."""
         if self.last_theta is not None and self.last_theta[0] == k - 1:
-            moved = torch.square(theta - self.last_theta[1])
-            self.drift = moved if self.drift is None else self.drift.mul_(0.9).add_(moved, alpha=0.1)
+            moved = theta - self.last_theta[1]
+            if self.drift is None:
+                self.drift = (moved, torch.square(moved))
+            else:
+                self.drift[0].mul_(0.9).add_(moved, alpha=0.1)
+                self.drift[1].mul_(0.9).addcmul_(moved, moved, value=0.1)
         self.last_theta = (k, theta.clone())
+
+    def widening(self, ages: torch.Tensor) -> torch.Tensor:
+        """How much the variance of each mean of a State ``ages`` rounds old (one row per
+        neighbour) has grown since it was sent: a parameter that moves d a round, with mean m and
+        variance v = E[d^2] - m^2, may have moved t m by a steady drift and by noise of variance
+        t v: t^2 m^2 + t v (a Kalman filter's prediction step, velocity and noise)."""
+        mean, square = (x[self.mu_at] for x in self.drift)
+        steady = torch.square(mean)
+        t = ages[:, None]
+        return t * t * steady[None] + t * (square - steady).clamp(min=0)[None]
 
     def dual_step(self, th_i: torch.Tensor, th_j: torch.Tensor, z: torch.Tensor, a: torch.Tensor | None) -> torch.Tensor:
         """A link's dual step. ``dinno`` (``a`` None): rho (theta_i - theta_j). ``ramen``:
@@ -465,7 +479,7 @@ def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rh
 
     ``widen`` (one row per neighbour, one column per mean; None: every State is this round's):
     an outdated State tells where the neighbour's mean was, not where it is, so its variance is
-    sigma_j^2 + t q (a Kalman filter's prediction step: t rounds of drift q a round). Its pull
+    sigma_j^2 + w, w growing with its age (:meth:`DinnoNode.widening`). Its pull
     weakens with age and has no floor. Every other parameter (rho itself, the sine layer, the
     output layer) is pulled towards DiNNO's midpoint with weight 1, or for an outdated State
     with the mean of how much the widening weakened that neighbour's pulls on its means."""

@@ -181,7 +181,10 @@ def test_sigma_keeps_outdated_states_and_widens_them_by_the_drift():
     assert node.drift is None  # one round seen: no move measured yet
     node.update(1, moved, {})  # the link is down: neighbour 1's State of round 0 still pulls
     assert 1 in node.known and node.drift is not None
-    torch.testing.assert_close(node.drift, torch.square(torch.from_numpy(moved - st)))
+    step = torch.from_numpy(moved - st)
+    torch.testing.assert_close(node.drift[1], torch.square(step))
+    # one move seen: all of it steady, so a State 3 rounds old has moved 3 steps: widened by 9 d^2
+    torch.testing.assert_close(node.widening(torch.tensor([3.0])), 9 * torch.square(step[node.mu_at])[None])
     node.update(11, node.state(), {})  # its memory is over
     assert 1 not in node.known
     assert DinnoNode(model_from_settings(bnn_settings(), BOUNDS, 0), *toy_data(0), bnn_settings(), seed=0).keep_for == 1
