@@ -60,6 +60,7 @@ def test_replay_from_recordings_alone_gives_the_recorded_points(cubicasa_run):
         assert s_replay[robot]["final_val_bce"] == pytest.approx(s_live[robot]["final_val_bce"], rel=1e-5)
 
 
+@pytest.mark.faults  # seven robots over a large plan (70-80 s): with the long runs, so that the everyday tier stays under 15 min
 def test_dinno_plan_with_its_seven_paths(tmp_path):
     if not DINNO.exists():
         pytest.skip("kit data ../shared/data/dinno-floorplan-32 not present")
