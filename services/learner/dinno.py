@@ -252,6 +252,7 @@ class DinnoNode(LocalNode):
         self.known: dict[int, tuple[int, torch.Tensor, torch.Tensor | None]] = {}
         timed = settings.exchange_every_s > 0 and settings.stale_rounds == 0
         self.keep_for = settings.rounds + 1 if timed else max(settings.stale_rounds, settings.exchange_every)
+        self.duals_for = self.keep_for  # a link's dual is in the objective while its State is this recent
         # sigma: each parameter's move a round, smoothed over rounds (its mean and mean square); an
         # outdated State's sigma is widened by how far it may have moved since (see widening)
         self.drift: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -408,7 +409,9 @@ class DinnoNode(LocalNode):
     def _primal(self, k: int, fresh) -> None:
         """A dual step per link in ``fresh`` (the neighbours heard from this round: as UDON, never
         against an outdated State), then ``primal_iterations`` optimizer steps on the loss plus
-        the consensus terms of the neighbours whose newest State is at most ``keep_for`` rounds old."""
+        the consensus terms of the neighbours whose newest State is at most ``keep_for`` rounds old,
+        their duals only while it is at most ``duals_for`` (sigma's memory pulls without them: a
+        dual carried on between States braked the team, see the README)."""
         self.forget_stale(k)
         th_reg = a = duals = None
         if self.known:
@@ -421,7 +424,8 @@ class DinnoNode(LocalNode):
                 if j in fresh:
                     step = self.dual_step(th_i, thj[row], th_reg[row], None if a is None else a[row])
                     self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
-            duals = torch.stack([self.duals[j] for j in ids]).sum(0)  # the links this node hears from
+            heard = [j for j in ids if k - self.known[j][0] < self.duals_for]  # the links this node hears from
+            duals = torch.stack([self.duals[j] for j in heard]).sum(0) if heard else torch.zeros_like(th_i)
         lr = float(self.lrs[min(k, len(self.lrs) - 1)])
         if self.optimizers is None:
             optimizers = self._optimizers(lr)
