@@ -190,6 +190,28 @@ def test_sigma_keeps_outdated_states_and_widens_them_by_the_drift():
     assert DinnoNode(model_from_settings(bnn_settings(), BOUNDS, 0), *toy_data(0), bnn_settings(), seed=0).keep_for == 1
 
 
+def test_sigma_memory_changes_nothing_when_every_state_comes():
+    """Over perfect links every State is this round's: nothing to widen, every dual heard."""
+    runs = [run_inproc(bnn_settings(consensus="sigma", sigma_memory_rounds=m), rounds=5)[1] for m in (0, 100)]
+    for i in runs[0]:
+        np.testing.assert_array_equal(runs[0][i], runs[1][i])
+
+
+def test_sigma_memory_pulls_a_node_whose_links_are_down():
+    """A round without States: with memory the node is still pulled towards its neighbours."""
+    ends = []
+    for memory in (0, 100):
+        s = bnn_settings(consensus="sigma", sigma_memory_rounds=memory)
+        node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+        st = node.state()
+        other = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(1), s, seed=2).update(0, st, {})
+        st = node.update(0, st, {1: other})
+        for k in range(1, 4):
+            st = node.update(k, st, {})
+        ends.append(np.abs(st - other).mean())
+    assert ends[1] < ends[0]
+
+
 def test_sigma_needs_a_bayesian_network_and_dinno():
     with pytest.raises(ValueError, match="needs model bnn"):
         LearnerSettings(consensus="sigma")
