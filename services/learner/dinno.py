@@ -500,7 +500,7 @@ def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rh
         floor[(widen > 0).any(1)] = 0.0
     z = th_i + share * (thj - th_i)
     a = 2 * share
-    a[:, mu_at] = torch.minimum(torch.maximum(a[:, mu_at], floor), torch.tensor(2 - min_weight, device=thj.device))
+    a[:, mu_at] = torch.maximum(a[:, mu_at], floor).clamp(max=2 - min_weight)
     return z, a
 
 
