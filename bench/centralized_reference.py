@@ -21,9 +21,10 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from swarmmap.services.learner.dinno import lr_schedule, make_optimizer, validation_bce
+from swarmmap.services.learner.metrics import validation_bce
+from swarmmap.services.learner.node import lr_schedule, make_optimizer
 from swarmmap.shared.config import RunConfig
-from swarmmap.shared.models import build_model
+from swarmmap.shared.networks import build_model
 
 
 def main(run_dir: Path) -> None:

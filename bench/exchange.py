@@ -41,10 +41,12 @@ import numpy as np
 import torch
 import zenoh
 
+from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ZenohSettings
-from swarmmap.shared.models import build_model, param_count
+from swarmmap.shared.models import param_count
+from swarmmap.shared.networks import build_model
 from swarmmap.shared.protocol import Keys, State, StateFrame, decode, encode_state
 
 RUN = "bench-exchange"
@@ -83,7 +85,7 @@ def echo(endpoint: str, size: str) -> None:
 
     threading.Thread(target=raw_echo, daemon=True).start()
     n = values(size)
-    transport = ZenohTransport(bus, 1, {0}, n)
+    transport = StateCodec(ZenohTransport(bus, 1, {0}, n), 1)  # as a learner's links are, uncompressed
     own = transport.new_state(n)  # this learner's State, as its node writes it
     own[:] = np.random.default_rng(2).standard_normal(n)
     bus.announce()
@@ -150,7 +152,7 @@ def measure(size: str, trips: int) -> dict:
         bus.session.declare_subscriber("bench/raw/back", lambda s: raw_in.put(s.payload.to_bytes()))
         raw_out = bus.session.declare_publisher("bench/raw/out", congestion_control=zenoh.CongestionControl.BLOCK)
         n = values(size)
-        transport = ZenohTransport(bus, 0, {1}, n)
+        transport = StateCodec(ZenohTransport(bus, 0, {1}, n), 0)
         params = transport.new_state(n)  # this learner's State, as its node writes it
         params[:] = np.random.default_rng(1).standard_normal(n)
         payload = encode_state(RUN, 0, 1, params)

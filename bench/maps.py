@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from swarmmap.shared.bnn import BayesLinear, BayesNet, fast_bf16, predict_mean_std
-from swarmmap.shared.models import build_model
+from swarmmap.shared.networks import build_model
 
 PAPER_BNN = [2, 256, 256, 256, 256, 256, 1]
 DINNO_NET = [2, 256, 64, 64, 64, 1]

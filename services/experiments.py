@@ -131,7 +131,7 @@ def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str
     on the run's map grid with its number of passes; ``std_of="logit"``: the std of the passes'
     logits instead of their probabilities."""
     from swarmmap.shared.bnn import predict_mean_std
-    from swarmmap.shared.models import load_model
+    from swarmmap.shared.networks import load_model
 
     learner = resolve(config_file=run_dir / "config.yaml", environ={}).learner  # the maps' grid and passes
     res = learner.map_resolution_m

@@ -40,6 +40,7 @@ import yaml
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
+from swarmmap.shared.fingerprint import settings_fingerprint
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.protocol import Keys, Metrics
@@ -376,8 +377,6 @@ def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
 def other_run_in(cfg: RunConfig) -> str | None:
     """Why ``cfg.run_dir`` cannot take this run: it holds one with other settings (its
     checkpoints would be refused and its outputs overwritten); None when it can."""
-    from swarmmap.services.learner.service import settings_fingerprint
-
     path = cfg.run_dir / "config.yaml"
     if not path.exists():
         return None

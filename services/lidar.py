@@ -40,10 +40,10 @@ class SensorModel:
         self.rng = np.random.default_rng([cfg.seed, robot, 1])
 
     def samples(self, scan: Scan) -> Samples:
-        s, w = self.cfg.lidar, self.cfg.world
+        s = self.cfg.lidar
         ranges, hit, valid = sensor_model(scan.ranges.numpy(), scan.hit.numpy().astype(bool), self.rng,
                                           noise_std=s.range_noise_std_m, dropout_prob=s.dropout_prob,
-                                          min_range=w.lidar_min_range_m, max_range=scan.max_range)
+                                          min_range=self.cfg.lidar_min_range_m(), max_range=scan.max_range)
         points, labels = beam_samples(scan.pose[:2], scan.angles.numpy()[valid], ranges[valid], hit[valid], scan.max_range,
                                       s.samples_per_beam, s.occupied_depth_m, sampling=s.sampling, rng=self.rng,
                                       free_on_max_range=s.free_on_max_range)
@@ -73,7 +73,7 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
     recorder = None
     if cfg.lidar.record:
         recorder = RecordingWriter(robot_file(cfg.lidar.record, robot), robot, cfg.model_dump(mode="json"),
-                                   plan_reference(cfg.world.floorplan))
+                                   plan_reference(cfg.plan()))
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
         bus.end_with_run(stop)
         out = bus.publisher(keys.samples(robot))
@@ -128,7 +128,7 @@ def replay(cfg: RunConfig, robot: int, path: str, stop: threading.Event) -> int:
         bus.end_with_run(stop)
         out = bus.publisher(keys.samples(robot))
         bus.announce()
-        if bus.wait_alive("learner", {str(robot)}, cfg.world.wait_for_consumers_s, stop):
+        if bus.wait_alive("learner", {str(robot)}, cfg.consumers_wait_s(), stop):
             log.warning("replaying although learner %d is not alive", robot)
         speed = cfg.lidar.replay_speed
         start = time.monotonic()

@@ -29,6 +29,7 @@ import json
 import logging
 import threading
 import time
+from dataclasses import dataclass
 
 import matplotlib
 import numpy as np
@@ -36,16 +37,17 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
-from swarmmap.services.learner.dinno import state_copies
-from swarmmap.services.learner.graphs import GraphError, run_graph
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bnn import fast_bf16, predict_mean_std
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.compression import Decompressor
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import StochasticNet, has_std, model_from_settings, param_count, pick_device, set_flat
-from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, Tensor, WorldMap
+from swarmmap.shared.graphs import GraphError, run_graph
+from swarmmap.shared.layout import StateLayout
+from swarmmap.shared.models import StochasticNet, pick_device, set_flat
+from swarmmap.shared.networks import build_network, has_std
+from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
 FINAL_STATES_WAIT_S = 10.0  # once the run is over, how long the learners' final States may take to arrive
@@ -110,18 +112,28 @@ def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> li
     return names
 
 
+@dataclass(frozen=True)
+class Snapshot:
+    """A learner's State as the observer keeps it: its round and its vector (rebuilt if compressed)."""
+
+    sender: int
+    round: int
+    params: np.ndarray
+
+
 class Observer:
     """Message intake (Zenoh callback threads) and map evaluation (:meth:`map_loop`), one recording."""
 
     def __init__(self, cfg: RunConfig, rec: rr.RecordingStream, device: torch.device):
         self.cfg, self.rec, self.device = cfg, rec, device
         self.s = cfg.observer
-        self.map_every = self.s.map_every or cfg.learner.eval_every
+        self.map_every = self.s.map_every or cfg.report_every()
+        self.last_round = cfg.rounds()
         bf16 = self.s.map_dtype == "bf16" or (self.s.map_dtype == "auto" and fast_bf16(device or "cpu"))
         self.map_dtype = torch.bfloat16 if bf16 else torch.float32
         self.lock = threading.Lock()
         self.wake = threading.Condition(self.lock)
-        self.newest: dict[int, State] = {}  # newest unmapped State per learner
+        self.newest: dict[int, Snapshot] = {}  # newest unmapped State per learner
         self.seen_round: dict[int, int] = {}  # newest State round received per learner
         self.decompressor = Decompressor()
         self.mapped_round: dict[int, int] = {}
@@ -133,7 +145,7 @@ class Observer:
         self.map_times: list[float] = []
         self.grid: OccupancyGrid | None = None
         self.model: torch.nn.Module | None = None
-        self.n_params = 0
+        self.layout: StateLayout | None = None
         self.points = np.zeros((0, 2), np.float32)
         self.shape = (0, 0)
         self.graph: dict[int, set[int]] = {}
@@ -145,20 +157,19 @@ class Observer:
         self.grid = grid.resample(self.s.map_resolution_m)
         self.points, self.shape = grid.centres(self.s.map_resolution_m)
         self.points = self.points.astype(np.float32)
-        model = model_from_settings(self.cfg.learner, world.bounds, self.cfg.seed).to(self.device)
-        self.n_params = param_count(model)
+        model = build_network(self.cfg.network(), world.bounds, self.cfg.seed).to(self.device)
+        self.layout = StateLayout.of(model, self.cfg.state_copies())  # DSGT's State carries its tracker too, RAMEN's its counts
         self.model = model
         self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), "gray_r", 1.0)), static=True)
-        s = self.cfg.learner
         positions = world.positions.numpy() if world.positions is not None else None
         try:
-            self.graph = run_graph(s, self.cfg.robots, positions)
+            self.graph = run_graph(self.cfg.graph(), self.cfg.robots, positions)
         except GraphError as exc:
             log.warning("no communication graph to show: %s", exc)
         if positions is not None:
             self.positions = {i: p for i, p in enumerate(positions)}
         log.info("map grid %d x %d at %.3f m, model %s with %d parameters", self.shape[1], self.shape[0],
-                 self.s.map_resolution_m, s.model, self.n_params)
+                 self.s.map_resolution_m, self.cfg.network().kind, self.layout.param_count)
 
     def pixel(self, xy: np.ndarray) -> np.ndarray:
         """World metres (N, 2) -> image pixels (N, 2) of the map grid, north up."""
@@ -203,16 +214,12 @@ class Observer:
     def on_state(self, msg: State) -> None:
         """Keep the newest State of each learner; a State superseded before it was mapped is skipped.
         A compressed State is rebuilt first (every one of a topk chain is needed)."""
-        if not msg.plain:
-            vec = self.decompressor.vector(msg)
-            if vec is None:
-                return
-            msg = State.model_construct(v=msg.v, kind=msg.kind, run=msg.run, sender=msg.sender, round=msg.round,
-                                        params=Tensor.model_construct(dtype="<f4", shape=[vec.size], data=vec.tobytes()),
-                                        encoding="f32", size=None, indices=None, seq=None, base=None)
+        vec = msg.params.numpy() if msg.plain else self.decompressor.vector(msg)
+        if vec is None:
+            return
         before = self.seen_round.get(msg.sender, -1)
         self.seen_round[msg.sender] = max(before, msg.round)
-        if before < msg.round != self.cfg.learner.rounds and msg.round // self.map_every <= before // self.map_every:
+        if before < msg.round != self.last_round and msg.round // self.map_every <= before // self.map_every:
             return  # no map round since the last State: mapping every State would take the CPU the learners need
         with self.lock:
             self.states_in += 1
@@ -221,20 +228,20 @@ class Observer:
                 return  # a duplicate or late State
             if old is not None:
                 self.skipped += 1
-            self.newest[msg.sender] = msg
+            self.newest[msg.sender] = Snapshot(msg.sender, msg.round, vec)
             self.wake.notify()
 
     def check_state(self, msg: State) -> None:
         """Refuse a State this run's model cannot hold."""
-        size = state_copies(self.cfg.learner) * self.n_params  # DSGT's State carries its tracker too, RAMEN's its counts
-        if self.n_params and msg.vector_size != size:
-            raise ProtocolError("shape", f"a State of {msg.vector_size} values, this run's States have {size}")
+        why = self.layout.refuses(msg.vector_size) if self.layout is not None else None
+        if why is not None:
+            raise ProtocolError("shape", why)
 
     # ------------------------------------------------------------------ maps
-    def map_state(self, msg: State) -> float:
+    def map_state(self, msg: Snapshot) -> float:
         """Log the mean (and std) map of one State; returns the seconds it took."""
         t0 = time.perf_counter()
-        flat = torch.from_numpy(msg.params.numpy()[: self.n_params].copy()).to(self.device)
+        flat = torch.from_numpy(self.layout.params_of(msg.params).copy()).to(self.device)
         set_flat(self.model, flat)
         mean, std = predict_mean_std(self.model, self.points, samples=self.s.mc_samples, seed=msg.round,
                                      dtype=self.map_dtype)
@@ -270,7 +277,7 @@ class Observer:
 
     def has_final_states(self) -> bool:
         """Whether every learner's final State has arrived (mapped or waiting to be)."""
-        last = self.cfg.learner.rounds
+        last = self.last_round
         with self.lock:
             got = {r for r, k in self.mapped_round.items() if k >= last} | {r for r, m in self.newest.items() if m.round >= last}
         return got >= set(range(self.cfg.robots))
@@ -290,7 +297,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     rec = rr.RecordingStream("swarmmap", recording_id=cfg.run_id)
-    bp = blueprint(cfg.robots, has_std(cfg.learner.model))
+    bp = blueprint(cfg.robots, has_std(cfg.network().kind))
     sinks = open_sinks(cfg, rec, bp)
     log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
     obs = Observer(cfg, rec, device)
@@ -298,11 +305,11 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     worker = threading.Thread(target=obs.map_loop, args=(mapping_done,), name="maps")
     with Bus.open(cfg.zenoh, keys, "observer", 0) as bus:
         bus.end_with_run(stop)
-        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.learner.collect_timeout_s, stop=stop)
+        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.world_wait_s(), stop=stop)
         if world is None:
             if stop.is_set():
                 return 0
-            log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.learner.collect_timeout_s)
+            log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.world_wait_s())
             return 3
         obs.on_world(world)
         bus.subscribe(keys.scan("*"), Scan, obs.on_scan)

@@ -174,8 +174,8 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "bytes_received": last.bytes_received if last else None,
             "refused": last.refused if last else None,
         }
-    return {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.learner.rounds,
-            "transport": cfg.learner.transport, "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
+    return {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),
+            "transport": cfg.transport(), "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
             "learners": learners}
 
 
@@ -203,7 +203,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                  m.consensus_error, "  (final)" if m.final else "")
 
     def fetch_ground_truth() -> None:
-        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.learner.collect_timeout_s, stop=stop)
+        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.world_wait_s(), stop=stop)
         if world is not None:
             save_ground_truth(run_dir, world)
 

@@ -28,7 +28,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         log.info("router up, listening on %s", ", ".join(settings.listen) or "Zenoh's default endpoints")
         stop.wait()
         if bus.run_done is not None:  # the run is over: stay while the others leave through us
-            deadline = time.monotonic() + cfg.recorder.linger_s + 5.0
+            deadline = time.monotonic() + cfg.leave_s()
             while time.monotonic() < deadline and {s for s, _ in bus.alive()} - {"router", "up", "status"}:
                 time.sleep(0.5)
     return 0

@@ -207,9 +207,9 @@ def wire_grid(grid: OccupancyGrid) -> np.ndarray:
 
 def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None = None) -> WorldMap:
     """The ground truth, validation set and final robot positions that the world serves on ``world/map``."""
-    w = cfg.world
+    w, beams = cfg.world, cfg.labelling()  # labelled as the streamers label training points (DiNNO)
     pts, labels = validation_set(grid, w.val_scans, w.val_beams, w.lidar_max_range_m,
-                                 cfg.lidar.samples_per_beam, cfg.seed, cfg.lidar.occupied_depth_m)
+                                 beams.samples_per_beam, cfg.seed, beams.occupied_depth_m)
     return WorldMap(run=cfg.run_id, sender=0, resolution=grid.resolution, origin=list(grid.origin),
                     grid=Tensor.of(wire_grid(grid), "|u1"), val_points=Tensor.of(pts, "<f4"),
                     val_labels=Tensor.of(labels, "<f4"), robots=cfg.robots,

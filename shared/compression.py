@@ -54,7 +54,7 @@ import zlib
 
 import numpy as np
 
-from swarmmap.shared.protocol import SCALE_CHUNK, State, Tensor
+from swarmmap.shared.protocol import SCALE_CHUNK, State, StateBody, Tensor
 
 log = logging.getLogger("compression")
 
@@ -76,7 +76,7 @@ def from_bf16_bits(bits: np.ndarray) -> np.ndarray:
 
 
 class Compressor:
-    """The sender's side: turns each new State's vector into the fields of a :class:`State`."""
+    """The sender's side: turns each new State's vector into the body of a :class:`State`."""
 
     def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 3, rank: int = 1,
                  matrices: list[tuple[int, int, int]] | None = None):
@@ -99,23 +99,23 @@ class Compressor:
         self.since_keyframe = 0
         self.warned = False
 
-    def fields(self, params: np.ndarray, keyframe: bool = False) -> dict:
-        """The encoding fields (``encoding``, ``params`` and the rest) of a State carrying
-        ``params``; ``keyframe`` forces a whole vector (a State sent again for an older round)."""
+    def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
+        """The body of a State carrying ``params`` (its encoding and what that needs);
+        ``keyframe`` forces a whole vector (a State sent again for an older round)."""
         vec = np.ascontiguousarray(params, dtype=np.float32)
         if self.mode == "none":
-            return {"params": Tensor.of(vec, "<f4")}
+            return StateBody(Tensor.of(vec, "<f4"))
         if self.mode == "bf16":
-            return {"encoding": "bf16", "params": Tensor.of(to_bf16_bits(vec), "<u2")}
+            return StateBody(Tensor.of(to_bf16_bits(vec), "<u2"), "bf16")
         if self.mode == "f16":
             peak = float(np.abs(vec).max()) if vec.size else 0.0
             if peak <= F16_MAX:
-                return {"encoding": "f16", "params": Tensor.of(vec.astype(np.float16), "<f2")}
+                return StateBody(Tensor.of(vec.astype(np.float16), "<f2"), "f16")
             if not self.warned:
                 self.warned = True
                 log.warning("a State holds %.3g, beyond half precision (%.0f): sent as float32 (further ones too, "
                             "without a word)", peak, F16_MAX)
-            return {"params": Tensor.of(vec, "<f4")}
+            return StateBody(Tensor.of(vec, "<f4"))
         self.seq += 1
         if keyframe or self.replica is None or self.replica.shape != vec.shape or self.since_keyframe + 1 >= self.keyframe_every:
             self.since_keyframe = 0
@@ -123,7 +123,7 @@ class Compressor:
                 self.replica = np.zeros_like(vec)
                 return self._quant(vec, KEYFRAME_BITS, None)
             self.replica = vec.copy()
-            return {"params": Tensor.of(vec, "<f4"), "seq": self.seq}
+            return StateBody(Tensor.of(vec, "<f4"), seq=self.seq)
         self.since_keyframe += 1
         diff = vec - self.replica
         if self.mode == "quant":
@@ -137,24 +137,23 @@ class Compressor:
             scales = (runs.sum(1) / counts).astype(np.float32)
             up = diff >= 0
             self.replica += sign_steps(up, scales)
-            return {"encoding": "sign", "params": Tensor.of(np.packbits(up), "|u1"), "scales": Tensor.of(scales, "<f4"),
-                    "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
+            return StateBody(Tensor.of(np.packbits(up), "|u1"), "sign", size=int(diff.size), seq=self.seq,
+                             base=self.seq - 1, scales=Tensor.of(scales, "<f4"))
         k = min(diff.size, max(1, math.ceil(self.density * diff.size)))
         idx = np.argpartition(np.abs(diff), diff.size - k)[diff.size - k :] if k < diff.size else np.arange(diff.size)
         idx = np.sort(idx).astype(np.uint32)
         values = diff[idx]
         self.replica[idx] += values
-        return {"encoding": "topk", "params": Tensor.of(values, "<f4"), "indices": Tensor.of(idx, "<u4"),
-                "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
+        return StateBody(Tensor.of(values, "<f4"), "topk", size=int(diff.size), indices=Tensor.of(idx, "<u4"),
+                         seq=self.seq, base=self.seq - 1)
 
-    def _quant(self, diff: np.ndarray, bits: int, base: int | None) -> dict:
+    def _quant(self, diff: np.ndarray, bits: int, base: int | None) -> StateBody:
         codes, steps = quantise(diff, bits)
         self.replica += dequantise(codes, steps, bits)
-        fields = {"encoding": "quant", "params": Tensor.of(deflate_codes(codes), "|u1"), "scales": Tensor.of(steps, "<f4"),
-                  "bits": bits, "size": int(diff.size), "seq": self.seq}
-        return fields if base is None else {**fields, "base": base}
+        return StateBody(Tensor.of(deflate_codes(codes), "|u1"), "quant", size=int(diff.size), seq=self.seq, base=base,
+                         scales=Tensor.of(steps, "<f4"), bits=bits)
 
-    def _lowrank(self, diff: np.ndarray) -> dict:
+    def _lowrank(self, diff: np.ndarray) -> StateBody:
         parts = []
         blocks = [b for b in self.blocks if b[0] + b[1] * b[2] <= diff.size]
         for offset, rows, cols, rank in blocks:
@@ -170,8 +169,8 @@ class Compressor:
             parts += [p32.reshape(-1), q32.reshape(-1)]
         values = np.concatenate([*parts, diff[uncovered(blocks, diff.size)]]).astype(np.float32)
         self.replica += lowrank_update(values, blocks, diff.size)
-        return {"encoding": "lowrank", "params": Tensor.of(values, "<f4"), "blocks": [list(b) for b in blocks],
-                "size": int(diff.size), "seq": self.seq, "base": self.seq - 1}
+        return StateBody(Tensor.of(values, "<f4"), "lowrank", size=int(diff.size), seq=self.seq, base=self.seq - 1,
+                         blocks=[list(b) for b in blocks])
 
 
 def lowrank_update(values: np.ndarray, blocks, size: int) -> np.ndarray:

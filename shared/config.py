@@ -19,12 +19,14 @@ import os
 import sys
 import types
 import typing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from swarmmap.shared.layout import state_copies
 from swarmmap.shared.protocol import NAME_PATTERN
 
 ENV_PREFIX = "SWARMMAP_"
@@ -384,8 +386,98 @@ class RunConfig(Section):
         """The config as YAML, loadable again with ``--config``."""
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
 
+    # Facts of the whole run that several services need. A service reads its own section and
+    # these; this is the one place that knows which section each comes from.
+
+    def network(self) -> NetworkSpec:
+        """The network every learner trains and every State is evaluated with."""
+        s = self.learner
+        return NetworkSpec(s.model, tuple(s.model_shape), s.siren_scale, s.prior_sigma, s.bnn_rho_init, s.dropout_p,
+                           s.bnn_local_reparam)
+
+    def graph(self) -> GraphSpec:
+        """Who exchanges States with whom: none for the baselines that do not communicate
+        (individual, centralized); complete for a dynamic disk graph (graph disk with online data),
+        whose links come and go with the robots' distance; else ``learner.graph``."""
+        s = self.learner
+        dynamic = s.graph == "disk" and s.data == "online"
+        kind = "none" if s.algorithm in ("individual", "centralized") else "complete" if dynamic else s.graph
+        return GraphSpec(kind, s.graph_file, s.comm_radius_m, dynamic)
+
+    def state_copies(self) -> int:
+        """Parameter-sized vectors in a State (:func:`~swarmmap.shared.layout.state_copies`)."""
+        return state_copies(self.learner.algorithm, self.learner.consensus)
+
+    def rounds(self) -> int:
+        """Training rounds of every learner."""
+        return self.learner.rounds
+
+    def report_every(self) -> int:
+        """Learners report Metrics (and the observer maps their States) every this many rounds."""
+        return self.learner.eval_every
+
+    def world_wait_s(self) -> float:
+        """How long a service waits for the world's map (it answers once the plan is built)."""
+        return self.learner.collect_timeout_s
+
+    def labelling(self) -> Labelling:
+        """How points along a beam are labelled: the lidar's training points, the world's validation set."""
+        return Labelling(self.lidar.samples_per_beam, self.lidar.occupied_depth_m)
+
+    def lidar_min_range_m(self) -> float:
+        """The LiDAR's closest measurable range (the world simulates the sensor, streamers apply it)."""
+        return self.world.lidar_min_range_m
+
+    def transport(self) -> str:
+        """How the learners exchange States: ``zenoh`` (a process each) or ``inproc`` (one process)."""
+        return self.learner.transport
+
+    def plan(self) -> str:
+        """The run's floor plan (``world.floorplan``), as recordings name it."""
+        return self.world.floorplan
+
+    def consumers_wait_s(self) -> float:
+        """How long a source of scans waits for their consumers before it starts anyway."""
+        return self.world.wait_for_consumers_s
+
+    def leave_s(self) -> float:
+        """How long, once the run is over, services take to leave (the router stays for them)."""
+        return self.recorder.linger_s + 5.0
+
 
 COMMON_FIELDS = ("run_id", "key_prefix", "robots", "seed", "run_dir", "log_level")
+
+
+@dataclass(frozen=True)
+class NetworkSpec:
+    """The learner's network (``learner.model`` and the settings of its kind)."""
+
+    kind: str
+    shape: tuple[int, ...]
+    scale: float  # the sine layer's frequency scale
+    prior_sigma: float = 0.1  # bnn
+    rho_init: float = -5.0  # bnn
+    dropout_p: float = 0.1  # dropout
+    local_reparam: bool = False  # bnn
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """A run's communication graph: ``kind`` (complete, ring, file, disk or none), its file, the
+    disk's radius, and whether it changes while the robots drive (``dynamic``)."""
+
+    kind: str
+    file: Path | None = None
+    radius_m: float = 15.0
+    dynamic: bool = False
+
+
+@dataclass(frozen=True)
+class Labelling:
+    """Free points sampled along each beam, and how far behind the hit the occupied one lies."""
+
+    samples_per_beam: int
+    occupied_depth_m: float
 
 
 class ConfigError(SystemExit):

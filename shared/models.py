@@ -14,15 +14,11 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-
-from swarmmap.shared.atomic import atomic_write_bytes
-from swarmmap.shared.config import MODEL_KINDS, STD_MODELS
 
 
 class SirenLayer(nn.Module):
@@ -134,42 +130,6 @@ class DropoutNet(StochasticNet):
         self.p = p
 
 
-def has_std(kind: str) -> bool:
-    """Whether a model of ``kind`` is stochastic (:class:`StochasticNet`): its maps have a
-    standard deviation (BNN, MC dropout); a FourierNet's have none."""
-    if kind not in MODEL_KINDS:
-        raise ValueError(f"unknown model {kind!r}; allowed: {', '.join(MODEL_KINDS)}")
-    return kind in STD_MODELS
-
-
-def build_model(shape: list[int], scale: float, bounds: tuple[float, float, float, float], seed: int,
-                kind: str = "fourier", prior_sigma: float = 0.1, rho_init: float = -5.0, dropout_p: float = 0.1,
-                local_reparam: bool = False) -> nn.Module:
-    """A FourierNet (``kind`` fourier), the paper's BayesNet (bnn) or a FourierNet with MC
-    dropout (dropout) initialised from ``seed`` (every learner of a run starts from the same
-    one, as in DiNNO)."""
-    from swarmmap.shared.bnn import BayesNet
-
-    gen_state = torch.random.get_rng_state()
-    torch.manual_seed(seed)
-    try:
-        if kind == "fourier":
-            return FourierNet(shape, scale, bounds)
-        if kind == "bnn":
-            return BayesNet(shape, scale, bounds, prior_sigma, rho_init, local_reparam)
-        if kind == "dropout":
-            return DropoutNet(shape, scale, bounds, dropout_p)
-        raise ValueError(f"unknown model {kind!r}; allowed: {', '.join(MODEL_KINDS)}")
-    finally:
-        torch.random.set_rng_state(gen_state)
-
-
-def model_from_settings(settings, bounds: tuple[float, float, float, float], seed: int) -> nn.Module:
-    """The model a LearnerSettings describes."""
-    return build_model(settings.model_shape, settings.siren_scale, bounds, seed, settings.model,
-                       settings.prior_sigma, settings.bnn_rho_init, settings.dropout_p, settings.bnn_local_reparam)
-
-
 @torch.no_grad()
 def flatten_into(tensors: list[torch.Tensor], out: np.ndarray) -> np.ndarray:
     """Write ``tensors`` (any device) one after another into the float32 vector ``out``, in one
@@ -214,38 +174,6 @@ def predict(model: FourierNet, points: np.ndarray, batch: int = 65536) -> np.nda
         xy = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=device)
         out.append(model(xy).cpu().numpy())
     return np.concatenate(out) if out else np.zeros(0, dtype=np.float32)
-
-
-def model_kind(model: nn.Module) -> str:
-    """``fourier``, ``bnn`` or ``dropout``: what :func:`build_model` calls the model's kind."""
-    from swarmmap.shared.bnn import BayesNet
-
-    return "bnn" if isinstance(model, BayesNet) else "dropout" if isinstance(model, DropoutNet) else "fourier"
-
-
-def save_model(model: nn.Module, path: Path, **meta: object) -> None:
-    """Write the model (kind, state dict, shape, scale, its kind's settings and ``meta``) atomically."""
-    import io
-
-    kind = model_kind(model)
-    extra: dict = {}
-    if kind == "bnn" and model.bayes_layers():
-        extra = {"prior_sigma": model.bayes_layers()[0].prior_sigma}
-    elif kind == "dropout":
-        extra = {"dropout_p": model.p}
-    buf = io.BytesIO()
-    torch.save({"kind": kind, "shape": model.shape, "scale": model.scale, "state_dict": model.state_dict(),
-                "meta": meta, **extra}, buf)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def load_model(path: Path) -> nn.Module:
-    """Load a model written by :func:`save_model`."""
-    doc = torch.load(path, map_location="cpu", weights_only=True)
-    model = build_model(doc["shape"], doc["scale"], (0.0, 0.0, 1.0, 1.0), 0, doc.get("kind", "fourier"),
-                        doc.get("prior_sigma", 0.1), dropout_p=doc.get("dropout_p", 0.1))
-    model.load_state_dict(doc["state_dict"])
-    return model
 
 
 def pick_device(name: str) -> torch.device:

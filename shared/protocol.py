@@ -15,6 +15,7 @@ import math
 import re
 import sys
 import warnings
+from dataclasses import dataclass, fields
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import msgpack
@@ -89,6 +90,20 @@ class Keys:
 
     def metrics(self, robot: int | str) -> str:
         return f"{self.root}/learners/{robot}/metrics"
+
+    def learner(self, robot: int | str) -> str:
+        """Every key learner ``robot`` publishes on (``learners/<id>/*``)."""
+        return f"{self.root}/learners/{robot}/*"
+
+    def exchange(self, robot: int | str) -> tuple[str, str]:
+        """Algorithm 1's keys of ``robot``: its State and its RoundComplete."""
+        return self.state(robot), self.round_complete(robot)
+
+    def is_exchange(self, key: str) -> bool:
+        """Whether ``key`` is some learner's State or RoundComplete key of this run."""
+        tail = key[len(self.root) + 1 :].split("/")
+        return key.startswith(self.root + "/") and len(tail) == 3 and tail[0] == "learners" and tail[2] in (
+            "state", "round-complete")
 
     def world_map(self) -> str:
         return f"{self.root}/world/map"
@@ -359,6 +374,29 @@ class State(Message):
     def plain(self) -> bool:
         """Whether ``params`` is the whole vector as float32 and nothing else comes with it."""
         return self.encoding == "f32" and self.seq is None and self.position is None and self.coverage is None
+
+
+@dataclass(frozen=True)
+class StateBody:
+    """What a State says apart from who sent it for which round: its encoded vector and what may
+    come with it (see :class:`State`). A :class:`~swarmmap.shared.compression.Compressor` makes
+    one, a learner's codec adds its position or coverage, a link stamps it (:meth:`state`)."""
+
+    params: Tensor
+    encoding: str = "f32"
+    size: int | None = None
+    indices: Tensor | None = None
+    seq: int | None = None
+    base: int | None = None
+    scales: Tensor | None = None
+    bits: int | None = None
+    blocks: list[list[int]] | None = None
+    position: list[float] | None = None
+    coverage: Tensor | None = None
+
+    def state(self, run: str, sender: int, round: int) -> State:
+        """The State ``sender`` sends for ``round`` of run ``run`` with this body (validated)."""
+        return State(run=run, sender=sender, round=round, **{f.name: getattr(self, f.name) for f in fields(self)})
 
 
 class RoundComplete(Message):

@@ -117,10 +117,10 @@ def access_policy(keys: Keys, robots: int, inproc_learner: bool = False) -> dict
       (queryable and its replies); ``recorder-0``: ``run/done``; every service its own
       ``alive/<service>/<id>`` token.
     """
-    root = keys.root
     rules: list[dict] = [
-        {"id": "members-listen", "permission": "allow", "flows": ["ingress"], "messages": LISTEN, "key_exprs": [f"{root}/**"]},
-        {"id": "members-receive", "permission": "allow", "flows": ["egress"], "messages": ALL_MESSAGES, "key_exprs": [f"{root}/**"]},
+        {"id": "members-listen", "permission": "allow", "flows": ["ingress"], "messages": LISTEN, "key_exprs": [keys.everything()]},
+        {"id": "members-receive", "permission": "allow", "flows": ["egress"], "messages": ALL_MESSAGES,
+         "key_exprs": [keys.everything()]},
     ]
     subjects: list[dict] = []
     policies: list[dict] = []
@@ -128,7 +128,7 @@ def access_policy(keys: Keys, robots: int, inproc_learner: bool = False) -> dict
     own: dict[str, list[str]] = {name: [keys.alive(*name.rsplit("-", 1))] for name in members}
     for i in range(robots):
         learner = identity("learner", 0 if inproc_learner else i)
-        own[learner] += [f"{root}/learners/{i}/*", keys.alive("learner", i), keys.alive("exchange", i)]
+        own[learner] += [keys.learner(i), keys.alive("learner", i), keys.alive("exchange", i)]
         own[identity("lidar", i)] += [keys.samples(i)]
     own["world-0"] += [keys.scan("*"), keys.world_map()]
     own["recorder-0"] += [keys.run_done()]

@@ -1,6 +1,8 @@
 """What Algorithm 1's States look like on the wire: their rounds and their encoding.
 
-:class:`StateCodec` wraps any transport (Zenoh's, the in-memory one, a faulty one). It
+:class:`StateCodec` turns a :class:`~swarmmap.services.learner.transport.Link` (Zenoh's, the
+in-memory hub's, a faulty one) into the :class:`~swarmmap.services.learner.transport.Transport`
+Algorithm 1 takes: vectors in, vectors out. It
 
 - numbers States by training round: with ``learner.exchange_every`` = E, Algorithm 1's round c
   is training rounds cE .. cE + E - 1 and its State travels as round cE, so observers and logs
@@ -19,15 +21,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
 
 import numpy as np
 
-from swarmmap.services.learner.exchange import Envelope, Transport
+from swarmmap.services.learner.transport import Delivery, Envelope, Link
 from swarmmap.shared.compression import Compressor, Decompressor
-from swarmmap.shared.protocol import State, Tensor
+from swarmmap.shared.protocol import StateBody, Tensor
 from swarmmap.shared.unseen import Coverage
 
 log = logging.getLogger("learner")
@@ -36,7 +39,7 @@ log = logging.getLogger("learner")
 class StateCodec:
     """One node's States, encoded and numbered for the wire, over ``inner``."""
 
-    def __init__(self, inner: Transport, node: int, compressor: Compressor | None = None, every: int = 1,
+    def __init__(self, inner: Link, node: int, compressor: Compressor | None = None, every: int = 1,
                  radius: float | None = None, position: Callable[[], tuple[float, float] | None] | None = None,
                  coverage: Coverage | None = None):
         self.inner, self.node, self.every = inner, node, every
@@ -46,7 +49,7 @@ class StateCodec:
         self.out_of_range: dict[int, bool] = {}  # per sender: was its newest State from out of range
         self.ignored = 0  # messages from neighbours out of range
         self.decompressor = Decompressor()
-        self.cached: tuple[int, int, dict] | None = None  # (round, compressor seq, fields) of the newest State sent
+        self.cached: tuple[int, int, StateBody] | None = None  # (round, compressor seq, body) of the newest State sent
         self.logged: set[tuple[str, int]] = set()
         self.unusable = 0  # States received that could not be rebuilt or were off the exchange rounds
 
@@ -58,29 +61,35 @@ class StateCodec:
             self.inner.send_state(wire, params)  # the fast path: the frame the node wrote its parameters into
             return
         if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
-            fields = self.cached[2]  # the same State again: the same bytes (receivers ignore duplicates)
+            body = self.cached[2]  # the same State again: the same bytes (receivers ignore duplicates)
         else:
             # A State of an older round (sent again to a neighbour that restarted) goes whole: it
             # starts the replicas again for whoever missed what came before; the next ones add to it.
-            fields = c.fields(params, keyframe=self.cached is not None and round < self.cached[0])
-            self.cached = (round, c.seq, fields)
+            body = c.body(params, keyframe=self.cached is not None and round < self.cached[0])
+            self.cached = (round, c.seq, body)
         if where is not None:
-            fields = {**fields, "position": [float(where[0]), float(where[1])]}
+            body = dataclasses.replace(body, position=[float(where[0]), float(where[1])])
         if self.coverage is not None:
-            fields = {**fields, "coverage": Tensor.of(self.coverage.packed(), "|u1")}
-        self.inner.send_fields(wire, fields)
+            body = dataclasses.replace(body, coverage=Tensor.of(self.coverage.packed(), "|u1"))
+        self.inner.send_body(wire, body)
 
-    def in_range(self, env: Envelope) -> bool:
+    def new_state(self, n: int) -> np.ndarray:
+        """The link's payload buffer where a plain State is sent as it is; else a fresh vector."""
+        if self.compressor.mode == "none" and self.position is None and self.coverage is None:
+            return self.inner.new_state(n)
+        return np.empty(n, np.float32)
+
+    def in_range(self, msg: Delivery) -> bool:
         """Whether a message comes from within ``radius`` (a State by its position; a RoundComplete
         by its sender's newest State). Without positions to compare, it does."""
-        if isinstance(env.params, State) and env.params.position is not None:
+        if msg.state is not None and msg.state.position is not None:
             here = self.position() if self.position is not None else None
-            far = here is not None and math.dist(here, env.params.position) > self.radius
-            self.out_of_range[env.sender] = far
-            if far and env.params.seq is not None:
-                self.decompressor.vector(env.params)  # a chain (its key frames too) is followed even out of range
+            far = here is not None and math.dist(here, msg.state.position) > self.radius
+            self.out_of_range[msg.sender] = far
+            if far and msg.state.seq is not None:
+                self.decompressor.vector(msg.state)  # a chain (its key frames too) is followed even out of range
             return not far
-        return not self.out_of_range.get(env.sender, False)
+        return not self.out_of_range.get(msg.sender, False)
 
     def send_round_complete(self, round: int) -> None:
         self.inner.send_round_complete(round * self.every)
@@ -105,22 +114,31 @@ class StateCodec:
             log.warning("node %d: %s (not logged again)", self.node, text)
 
     def receive(self, timeout: float) -> Envelope | None:
-        env = self.inner.receive(timeout)
-        if env is None:
+        """The next message as Algorithm 1 takes it: an exchange round's, in range, its vector rebuilt."""
+        msg = self.inner.receive(timeout)
+        if msg is None:
             return None
-        if env.round % self.every:
-            self._once(("rounds", env.sender), f"node {env.sender} sent a {env.kind} for round {env.round}, not an exchange "
+        if msg.round % self.every:
+            self._once(("rounds", msg.sender), f"node {msg.sender} sent a {msg.kind} for round {msg.round}, not an exchange "
                                                 f"round (every {self.every}): does it run with another learner.exchange_every?")
             return None
-        params = env.params
-        if self.radius is not None and not self.in_range(env):
+        if self.radius is not None and not self.in_range(msg):
             self.ignored += 1
             return None
-        if isinstance(params, State):
-            if self.coverage is not None and params.coverage is not None:
-                self.offer_coverage(env.sender, env.round, params.coverage.numpy())
-            params = self.decompressor.vector(params)
-            if params is None:
-                self._once(("chain", env.sender), self.decompressor.why)
-                return None
-        return Envelope(env.kind, env.sender, env.round // self.every, params)
+        params = None if msg.state is None else self.vector(msg)
+        if msg.state is not None and params is None:
+            return None
+        return Envelope(msg.kind, msg.sender, msg.round // self.every, params)
+
+    def vector(self, msg: Delivery) -> np.ndarray | None:
+        """A received State's vector: a plain one's as a read-only view of its payload (no copy),
+        any other rebuilt by the decompressor (None, logged once, when its chain is broken)."""
+        state = msg.state
+        if self.coverage is not None and state.coverage is not None:
+            self.offer_coverage(msg.sender, msg.round, state.coverage.numpy())
+        if state.plain:
+            return state.params.numpy()
+        vec = self.decompressor.vector(state)
+        if vec is None:
+            self._once(("chain", msg.sender), self.decompressor.why)
+        return vec

@@ -1,16 +1,16 @@
-"""Algorithm 1's transport over Zenoh: State and RoundComplete on each learner's own keys.
+"""Algorithm 1's link over Zenoh: State and RoundComplete on each learner's own keys.
 
 A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete`` and
 subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
 than this node's model is refused (counted, logged once). At most ``inbox_limit`` messages
-wait from any one neighbour (:class:`~swarmmap.services.learner.exchange.Inbox`): a flood
+wait from any one neighbour (:class:`~swarmmap.services.learner.transport.Inbox`): a flood
 beyond that is dropped, counted and logged once. The neighbours' ``exchange`` liveliness
 tokens tell the exchange when one has left.
 
 No copies of a vector beyond Zenoh's own: the node writes its State into a
 :class:`~swarmmap.shared.protocol.StateFrame` (:meth:`ZenohTransport.new_state`), which is sent
 as it is, and a neighbour's State reaches Algorithm 1 as a read-only view of the received
-payload.
+payload. A :class:`~swarmmap.services.learner.codec.StateCodec` makes it Algorithm 1's transport.
 """
 
 from __future__ import annotations
@@ -20,21 +20,22 @@ import threading
 
 import numpy as np
 
-from swarmmap.services.learner.exchange import Envelope, Inbox, state_envelope
+from swarmmap.services.learner.transport import Delivery, Inbox
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateFrame, encode_state
+from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateBody, StateFrame, encode_state
 
 log = logging.getLogger("learner")
 
 
 class ZenohTransport:
-    """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.bus.Bus`."""
+    """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.bus.Bus` (a Link).
+    States of another size than ``state_size`` are refused."""
 
-    def __init__(self, bus: Bus, node: int, neighbours: set[int], param_count: int, inbox_limit: int = 64):
+    def __init__(self, bus: Bus, node: int, neighbours: set[int], state_size: int, inbox_limit: int = 64):
         self.bus = bus
         self.node = node
         self.run = bus.keys.run
-        self.inbox = Inbox(inbox_limit)
+        self.inbox: Inbox[Delivery] = Inbox(inbox_limit)
         self._lost: set[int] = set()
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()  # a frame is stamped and sent as one step
@@ -42,8 +43,8 @@ class ZenohTransport:
         self.complete_pub = bus.publisher(bus.keys.round_complete(node))
 
         def check(msg: State) -> None:
-            if msg.vector_size != param_count:
-                raise ProtocolError("shape", f"a State of {msg.vector_size} values, this node's States have {param_count}")
+            if msg.vector_size != state_size:
+                raise ProtocolError("shape", f"a State of {msg.vector_size} values, this node's States have {state_size}")
 
         for j in sorted(neighbours):
             bus.subscribe(bus.keys.state(j), State, self._on_state, check=check)
@@ -57,15 +58,15 @@ class ZenohTransport:
         bus.watch_alive("exchange", on_alive)
 
     def _on_state(self, msg: State) -> None:
-        self._queue(state_envelope(msg))  # an uncompressed vector: read-only, no copy
+        self._queue(Delivery("state", msg.sender, msg.round, msg))
 
     def _on_complete(self, msg: RoundComplete) -> None:
-        self._queue(Envelope("complete", msg.sender, msg.round))
+        self._queue(Delivery("complete", msg.sender, msg.round))
 
-    def _queue(self, env: Envelope) -> None:
-        if not self.inbox.put(env) and self.inbox.dropped[env.sender] == 1:
+    def _queue(self, msg: Delivery) -> None:
+        if not self.inbox.put(msg) and self.inbox.dropped[msg.sender] == 1:
             log.warning("node %d: neighbour %d has %d messages waiting; dropping its further ones until this node "
-                        "catches up (a flood? counted in the inbox)", self.node, env.sender, self.inbox.per_sender)
+                        "catches up (a flood? counted in the inbox)", self.node, msg.sender, self.inbox.per_sender)
 
     def new_state(self, n: int) -> np.ndarray:
         """A vector for the node to write its next State into: the payload it will be sent in."""
@@ -79,14 +80,14 @@ class ZenohTransport:
         with self._send_lock:
             self.state_pub.put_bytes(frame.stamp(round))
 
-    def send_fields(self, round: int, fields: dict) -> None:
-        """A State of another encoding (:mod:`~swarmmap.shared.compression`)."""
-        self.state_pub.put(State(run=self.run, sender=self.node, round=round, **fields))
+    def send_body(self, round: int, body: StateBody) -> None:
+        """A State of another encoding (:mod:`~swarmmap.shared.compression`), or with a position or coverage."""
+        self.state_pub.put(body.state(self.run, self.node, round))
 
     def send_round_complete(self, round: int) -> None:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))
 
-    def receive(self, timeout: float) -> Envelope | None:
+    def receive(self, timeout: float) -> Delivery | None:
         return self.inbox.get(timeout)
 
     def lost_peers(self) -> set[int]:

@@ -8,7 +8,8 @@ import numpy as np
 from scipy import ndimage
 
 from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import load_model, predict
+from swarmmap.shared.models import predict
+from swarmmap.shared.networks import load_model
 
 
 def observed_agreement(run_dir: Path, robot: int, near_m: float = 0.15) -> float:

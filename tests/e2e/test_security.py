@@ -15,7 +15,8 @@ import yaml
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig
-from swarmmap.shared.models import model_from_settings, param_count
+from swarmmap.shared.models import param_count
+from swarmmap.shared.networks import build_network
 from swarmmap.shared.protocol import Keys, State, Tensor
 from swarmmap.shared.secrets import write_secrets
 from tests.conftest import SWARMMAP, clean_env, wait_until
@@ -47,7 +48,7 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
         with pytest.raises(ConfigError, match="cannot open a session"):
             Bus.open(router.model_copy(update={"secrets": tmp_path / "forged"}), keys, "learner", 1)
         # A member gone rogue: learner 1's own credentials.
-        size = param_count(model_from_settings(cfg.learner, (0, 0, 1, 1), cfg.seed))
+        size = param_count(build_network(cfg.network(), (0, 0, 1, 1), cfg.seed))
         zeros = Tensor.of(np.zeros(size, np.float32), "<f4")
         with Bus.open(router, keys, "learner", 1) as rogue:
             as_self, as_other = rogue.publisher(keys.state(1)), rogue.publisher(keys.state(2))

@@ -17,7 +17,8 @@ from PIL import Image
 
 from swarmmap.services.world import build_plan
 from swarmmap.shared.config import RunConfig
-from swarmmap.shared.models import load_model, predict
+from swarmmap.shared.models import predict
+from swarmmap.shared.networks import load_model
 from tests.conftest import SWARMMAP, clean_env, wait_until
 from tests.e2e.mapcheck import observed_agreement
 

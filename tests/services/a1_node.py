@@ -9,7 +9,9 @@ import threading
 
 import numpy as np
 
-from swarmmap.services.learner.exchange import run_algorithm1
+from swarmmap.services.learner.algorithm1 import Algorithm1, RoundLoop
+from swarmmap.services.learner.codec import StateCodec
+from swarmmap.services.learner.exchange import ExchangeRules
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ZenohSettings
@@ -26,12 +28,12 @@ def main():
     node, rounds, run, settings, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5]
     peers = {0, 1} - {node}
     with Bus.open(ZenohSettings.model_validate(json.loads(settings)), Keys("swarmmap", run), "learner", node) as bus:
-        transport = ZenohTransport(bus, node, peers, 4)
+        transport = StateCodec(ZenohTransport(bus, node, peers, 4), node)
         bus.announce(service="exchange")
         assert not bus.wait_alive("exchange", {str(j) for j in peers}, 30.0)
         theta = np.full(4, float(node), np.float32)
-        final = run_algorithm1(node, peers, rounds, theta, update(node), transport, peer_timeout=30,
-                               stop=threading.Event())
+        machine = Algorithm1(node, peers, update(node), transport, ExchangeRules(peer_timeout=30), stop=threading.Event())
+        final = RoundLoop(machine).run(theta, rounds)
         np.save(out, final)
 
 

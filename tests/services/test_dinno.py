@@ -8,9 +8,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from swarmmap.services.learner.dinno import DinnoNode, validation_bce
-from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.models import model_from_settings
+from swarmmap.services.learner.consensus.ramen import ramen_targets
+from swarmmap.services.learner.consensus.sigma import sigma_pairs, sigma_targets
+from swarmmap.services.learner.metrics import validation_bce
+from swarmmap.services.learner.registry import node_for
+from swarmmap.shared.config import LearnerSettings, RunConfig
+from swarmmap.shared.graphs import neighbour_sets
+from swarmmap.shared.layout import state_copies
+from swarmmap.shared.networks import build_network
 
 BOUNDS = (0.0, 0.0, 4.0, 4.0)
 
@@ -24,9 +29,18 @@ def toy_data(node: int, n: int = 3000):
     return torch.from_numpy(x), torch.from_numpy(y)
 
 
+def network(s: LearnerSettings, seed: int = 0):
+    """The network of the learner's settings ``s`` (every node of a run starts from the same one)."""
+    return build_network(RunConfig(learner=s).network(), BOUNDS, seed)
+
+
+def node(s: LearnerSettings, i: int, seed: int, data=None, **kw):
+    """Node ``i`` of a run of ``s`` on its toy data (or ``data``)."""
+    return node_for(s, network(s), *(data if data is not None else toy_data(i)), seed, **kw)
+
+
 def run_inproc(settings: LearnerSettings, nodes: int = 3, rounds: int = 6):
-    models = [model_from_settings(settings, BOUNDS, seed=0) for _ in range(nodes)]
-    dn = [DinnoNode(m, *toy_data(i), settings, seed=i + 1) for i, m in enumerate(models)]
+    dn = [node(settings, i, seed=i + 1) for i in range(nodes)]
     th = {i: dn[i].state() for i in range(nodes)}
     for k in range(rounds):
         th = {i: dn[i].update(k, th[i], {j: th[j] for j in range(nodes) if j != i}) for i in range(nodes)}
@@ -38,7 +52,7 @@ def test_each_bnn_strategy_trains_and_agrees(strategy):
     s = LearnerSettings(model="bnn", model_shape=[2, 32, 32, 32, 1], regularization=strategy, rounds=30,
                         primal_iterations=5, batch_size=512, lr_start=1e-2, lr_finish=1e-3, rho_init=0.1)
     val_x, val_y = toy_data(9)
-    before = validation_bce(model_from_settings(s, BOUNDS, 0), val_x, val_y)
+    before = validation_bce(network(s), val_x, val_y)
     dn, th = run_inproc(s, rounds=30)
     after = [validation_bce(n.model, val_x, val_y) for n in dn]
     assert max(after) < before
@@ -47,27 +61,29 @@ def test_each_bnn_strategy_trains_and_agrees(strategy):
 
 def test_algorithm2_splits_mu_and_rho_into_two_optimizers():
     s = LearnerSettings(model="bnn", model_shape=[2, 16, 8, 1], regularization="separate-kl", optimizer_per_round=False)
-    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
-    mu_opt, rho_opt = node.optimizers
+    n = node(s, 0, seed=1)
+    mu_opt, rho_opt = n.optimizers
     mu_ids = {id(p) for g in mu_opt.param_groups for p in g["params"]}
-    rho_names = {n for n, p in node.model.named_parameters() if id(p) in {id(q) for g in rho_opt.param_groups for q in g["params"]}}
+    rho_names = {k for k, p in n.model.named_parameters() if id(p) in {id(q) for g in rho_opt.param_groups for q in g["params"]}}
     assert rho_names == {"seq.1.weight_rho", "seq.1.bias_rho"}
     assert not mu_ids & {id(p) for g in rho_opt.param_groups for p in g["params"]}
-    assert node.mu_rho_split() == (2 * 16 + 16 + 16 * 8 + 8 + 8 + 1, 16 * 8 + 8)
+    assert type(n.reg).__name__ == "Algorithm2"
+    n_rho = int(n.reg.rho_mask.sum())
+    assert (n.reg.rho_mask.numel() - n_rho, n_rho) == (2 * 16 + 16 + 16 * 8 + 8 + 8 + 1, 16 * 8 + 8)
 
 
 def test_kl_strategy_pulls_spreads_not_means():
     """With identical means and different rho, separate-kl's penalty is the KL of the spreads only."""
     s = LearnerSettings(model="bnn", model_shape=[2, 4, 4, 1], regularization="separate-kl")
-    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
-    th = torch.from_numpy(node.state())
+    n = node(s, 0, seed=1)
+    th = torch.from_numpy(n.state())
     other = th.clone()
-    other[node.rho_mask] += 1.0
+    other[n.reg.rho_mask] += 1.0
     reg = (th + other)[None] / 2
-    pen = node.consensus_penalty(th, reg).item()
-    sig0 = torch.nn.functional.softplus(th[node.rho_mask])
-    sig1 = torch.nn.functional.softplus(reg[0, node.rho_mask])
-    expected = node.rho * float((torch.log(sig1 / sig0) + sig0**2 / (2 * sig1**2) - 0.5).sum())
+    pen = n.reg.penalty(n.rho, th, reg, None).item()
+    sig0 = torch.nn.functional.softplus(th[n.reg.rho_mask])
+    sig1 = torch.nn.functional.softplus(reg[0, n.reg.rho_mask])
+    expected = n.rho * float((torch.log(sig1 / sig0) + sig0**2 / (2 * sig1**2) - 0.5).sum())
     assert pen == pytest.approx(expected, rel=1e-5)
 
 
@@ -79,12 +95,9 @@ def test_kept_optimizer_differs_from_fresh_one_per_round():
     assert not np.allclose(a[0], b[0])
 
 
-def run_baseline(cls, settings, nodes=3, rounds=20):
-    from swarmmap.services.learner.graphs import metropolis_weights, neighbour_sets
-
+def run_baseline(settings, nodes=3, rounds=20):
     graph = neighbour_sets("ring", nodes)
-    dn = [cls(model_from_settings(settings, BOUNDS, 0), *toy_data(i), settings, i + 1, metropolis_weights(graph, i), i)
-          for i in range(nodes)]
+    dn = [node(settings, i, i + 1, graph=graph, robot=i) for i in range(nodes)]
     st = {i: dn[i].state() for i in range(nodes)}
     for k in range(rounds):
         st = {i: dn[i].update(k, st[i], {j: st[j] for j in graph[i]}) for i in range(nodes)}
@@ -93,21 +106,17 @@ def run_baseline(cls, settings, nodes=3, rounds=20):
 
 @pytest.mark.parametrize("name", ["dsgd", "dsgt"])
 def test_dsgd_and_dsgt_learn(name):
-    from swarmmap.services.learner.dinno import DsgdNode, DsgtNode
-
-    s = LearnerSettings(model_shape=[2, 32, 32, 1], batch_size=512, lr_start=0.3, lr_finish=0.3, rounds=40)
+    s = LearnerSettings(model_shape=[2, 32, 32, 1], batch_size=512, lr_start=0.3, lr_finish=0.3, rounds=40, algorithm=name)
     val_x, val_y = toy_data(9)
-    before = validation_bce(model_from_settings(s, BOUNDS, 0), val_x, val_y)
-    dn, _ = run_baseline(DsgdNode if name == "dsgd" else DsgtNode, s, rounds=40)
+    before = validation_bce(network(s), val_x, val_y)
+    dn, _ = run_baseline(s, rounds=40)
     assert max(validation_bce(n.model, val_x, val_y) for n in dn) < before
 
 
 def test_dsgt_tracks_the_average_gradient():
     """Gradient tracking's invariant with doubly stochastic weights: mean_i y_i = mean_i g_i."""
-    from swarmmap.services.learner.dinno import DsgtNode
-
-    s = LearnerSettings(model_shape=[2, 8, 8, 1], batch_size=64, lr_start=0.1, lr_finish=0.1, rounds=5)
-    dn, _ = run_baseline(DsgtNode, s, rounds=5)
+    s = LearnerSettings(model_shape=[2, 8, 8, 1], batch_size=64, lr_start=0.1, lr_finish=0.1, rounds=5, algorithm="dsgt")
+    dn, _ = run_baseline(s, rounds=5)
     mean_y = torch.stack([n.y for n in dn]).mean(0)
     mean_g = torch.stack([n.g_old for n in dn]).mean(0)
     torch.testing.assert_close(mean_y, mean_g, rtol=1e-4, atol=1e-5)
@@ -122,10 +131,8 @@ def bnn_settings(**over):
 
 
 def test_sigma_consensus_moves_the_less_sure_node_towards_the_surer_one():
-    from swarmmap.services.learner.dinno import sigma_pairs, sigma_targets
-
     s = bnn_settings(consensus="sigma")
-    model = model_from_settings(s, BOUNDS, 0)
+    model = network(s)
     mu_at, rho_at = sigma_pairs(model)
     th_i = torch.nn.utils.parameters_to_vector(model.parameters()).detach()
     th_j = th_i + 1.0
@@ -146,9 +153,7 @@ def test_sigma_consensus_moves_the_less_sure_node_towards_the_surer_one():
 
 
 def test_sigma_consensus_listens_less_to_an_outdated_state():
-    from swarmmap.services.learner.dinno import sigma_pairs, sigma_targets
-
-    model = model_from_settings(bnn_settings(consensus="sigma"), BOUNDS, 0)
+    model = network(bnn_settings(consensus="sigma"))
     mu_at, rho_at = sigma_pairs(model)
     th_i = torch.nn.utils.parameters_to_vector(model.parameters()).detach()
     th_j = th_i + 1.0
@@ -172,22 +177,22 @@ def test_sigma_consensus_listens_less_to_an_outdated_state():
 
 def test_sigma_keeps_outdated_states_and_widens_them_by_the_drift():
     s = bnn_settings(consensus="sigma", sigma_memory_rounds=10)
-    node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=0)
-    assert node.keep_for == 10
-    st = node.state()
+    n = node(s, 0, seed=0)
+    assert n.keep_for == 10
+    st = n.state()
     other = st + 0.01
-    node.update(0, st, {1: other})
-    moved = node.state()
-    assert node.drift is None  # one round seen: no move measured yet
-    node.update(1, moved, {})  # the link is down: neighbour 1's State of round 0 still pulls
-    assert 1 in node.known and node.drift is not None
+    n.update(0, st, {1: other})
+    moved = n.state()
+    assert n.rule.drift is None  # one round seen: no move measured yet
+    n.update(1, moved, {})  # the link is down: neighbour 1's State of round 0 still pulls
+    assert 1 in n.known and n.rule.drift is not None
     step = torch.from_numpy(moved - st)
-    torch.testing.assert_close(node.drift[1], torch.square(step))
+    torch.testing.assert_close(n.rule.drift[1], torch.square(step))
     # one move seen: all of it steady, so a State 3 rounds old has moved 3 steps: widened by 9 d^2
-    torch.testing.assert_close(node.widening(torch.tensor([3.0])), 9 * torch.square(step[node.mu_at])[None])
-    node.update(11, node.state(), {})  # its memory is over
-    assert 1 not in node.known
-    assert DinnoNode(model_from_settings(bnn_settings(), BOUNDS, 0), *toy_data(0), bnn_settings(), seed=0).keep_for == 1
+    torch.testing.assert_close(n.rule.widening(torch.tensor([3.0])), 9 * torch.square(step[n.rule.mu_at])[None])
+    n.update(11, n.state(), {})  # its memory is over
+    assert 1 not in n.known
+    assert node(bnn_settings(), 0, seed=0).keep_for == 1
 
 
 def test_sigma_memory_changes_nothing_when_every_state_comes():
@@ -202,12 +207,12 @@ def test_sigma_memory_pulls_a_node_whose_links_are_down():
     ends = []
     for memory in (0, 100):
         s = bnn_settings(consensus="sigma", sigma_memory_rounds=memory)
-        node = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
-        st = node.state()
-        other = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(1), s, seed=2).update(0, st, {})
-        st = node.update(0, st, {1: other})
+        n = node(s, 0, seed=1)
+        st = n.state()
+        other = node(s, 1, seed=2).update(0, st, {})
+        st = n.update(0, st, {1: other})
         for k in range(1, 4):
-            st = node.update(k, st, {})
+            st = n.update(k, st, {})
         ends.append(np.abs(st - other).mean())
     assert ends[1] < ends[0]
 
@@ -224,8 +229,6 @@ def test_sigma_needs_a_bayesian_network_and_dinno():
 
 
 def test_ramen_weights_follow_ramens_scaling_and_reduce_to_dinno_for_equal_counts():
-    from swarmmap.services.learner.dinno import ramen_targets
-
     th_i, th_j = torch.zeros(4), torch.tensor([[1.0, 1.0, 1.0, 1.0]])
     z, a = ramen_targets(th_i, torch.full((4,), 5.0), th_j, torch.full((1, 4), 5.0))
     torch.testing.assert_close(z[0], torch.full((4,), 0.5))
@@ -244,8 +247,9 @@ def test_ramen_weights_follow_ramens_scaling_and_reduce_to_dinno_for_equal_count
 
 def test_ramen_counts_travel_in_the_state_and_grow_with_the_steps():
     s = LearnerSettings(model_shape=[2, 16, 8, 1], consensus="ramen", rounds=4, primal_iterations=3, batch_size=256)
-    nodes = [DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(i), s, seed=i + 1) for i in range(2)]
-    n = nodes[0].param_count
+    nodes = [node(s, i, seed=i + 1) for i in range(2)]
+    n = nodes[0].layout.param_count
+    assert state_copies(s.algorithm, s.consensus) == 2
     th = {i: nodes[i].state().copy() for i in range(2)}
     assert th[0].shape == (2 * n,) and (th[0][n:] == 0).all()
     for k in range(2):
@@ -257,8 +261,8 @@ def test_ramen_counts_travel_in_the_state_and_grow_with_the_steps():
 def test_rounds_between_exchanges_pull_towards_the_last_states_and_keep_the_duals():
     s = LearnerSettings(model_shape=[2, 16, 8, 1], rounds=4, primal_iterations=3, batch_size=256, rho_init=1.0,
                         exchange_every=2)
-    a = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
-    lone = DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+    a = node(s, 0, seed=1)
+    lone = node(s, 0, seed=1)
     far = a.state().copy() + 0.5
     own = a.update(0, a.state().copy(), {1: far}).copy()
     duals = a.duals[1].clone()
@@ -275,7 +279,7 @@ def test_the_two_duals_of_a_link_cancel(consensus):
     """Whatever the weights, node i's dual for j and node j's dual for i sum to zero after an
     exchange: an unbalanced pair would push the whole team off the data's optimum."""
     s = bnn_settings(consensus=consensus)
-    a, b = (DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(i), s, seed=i + 1) for i in range(2))
+    a, b = (node(s, i, seed=i + 1) for i in range(2))
     th_a = a.state().copy()
     th_b = th_a + np.random.default_rng(0).normal(0, 0.05, th_a.shape).astype(np.float32)
     rho_b = [p.numel() for n, p in b.model.named_parameters()]  # make b far surer than a on some weights
@@ -300,14 +304,14 @@ def test_the_noise_contrastive_prior_makes_the_bnn_unsure_where_it_has_no_data()
     for weight in (0.0, 0.1):
         s = LearnerSettings(model="bnn", model_shape=[2, 32, 32, 32, 1], rounds=40, primal_iterations=5, batch_size=512,
                             lr_start=1e-2, lr_finish=1e-3, unseen_weight=weight, unseen_margin_m=0.4, unseen_points=128)
-        node = DinnoNode(model_from_settings(s, BOUNDS, 0), x[seen], y[seen], s, seed=1, bounds=BOUNDS)
-        assert (node.coverage is not None) == (weight > 0)
-        th = node.state()
+        n = node(s, 0, seed=1, data=(x[seen], y[seen]), bounds=BOUNDS)
+        assert (n.coverage is not None) == (weight > 0)
+        th = n.state()
         for k in range(40):
-            th = node.update(k, th, {})
-        _, std = predict_mean_std(node.model, grid.astype(np.float32), samples=30)
+            th = n.update(k, th, {})
+        _, std = predict_mean_std(n.model, grid.astype(np.float32), samples=30)
         spread[weight] = (float(std[far].mean()), float(std[near].mean()))
-        fits[weight] = validation_bce(node.model, x[seen][:1000], y[seen][:1000])
+        fits[weight] = validation_bce(n.model, x[seen][:1000], y[seen][:1000])
     (far_with, near_with), (far_without, _) = spread[0.1], spread[0.0]
     assert far_with > 0.05 and far_with > 4 * far_without and near_with < 0.01, spread
     assert fits[0.1] < 0.3, fits
@@ -316,4 +320,4 @@ def test_the_noise_contrastive_prior_makes_the_bnn_unsure_where_it_has_no_data()
 def test_the_noise_contrastive_prior_needs_the_maps_bounds():
     s = LearnerSettings(model="bnn", model_shape=[2, 8, 8, 1], unseen_weight=0.1)
     with pytest.raises(ValueError, match="bounds"):
-        DinnoNode(model_from_settings(s, BOUNDS, 0), *toy_data(0), s, seed=1)
+        node(s, 0, seed=1)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from swarmmap.services.learner.graphs import GraphError, metropolis_weights, neighbour_sets
+from swarmmap.shared.graphs import GraphError, metropolis_weights, neighbour_sets
 
 
 def test_complete_ring_and_none():

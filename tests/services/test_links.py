@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 
 from swarmmap.services.learner.codec import StateCodec
-from swarmmap.services.learner.exchange import ExchangeStats, MemoryHub, run_algorithm1
+from swarmmap.services.learner.exchange import ExchangeStats
 from swarmmap.services.learner.faults import FaultyTransport
+from swarmmap.services.learner.memory_link import MemoryLink
+from swarmmap.services.learner.transport import MemoryHub
 from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import FaultSettings
 
-from .test_exchange import COMPLETE3, in_threads, mixing_update, reference
+from .test_algorithm1 import COMPLETE3, in_threads, mixing_update, reference, run_algorithm1
 
 
 def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, faults=None, round_wait=0.0,
@@ -26,10 +28,10 @@ def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, 
     stats = {i: ExchangeStats() for i in graph}
 
     def node(i):
-        inner = hub.transport(i)
-        spy_send, spy_fields = inner.send_state, inner.send_fields
+        inner = MemoryLink(hub, i)
+        spy_send, spy_body = inner.send_state, inner.send_body
         inner.send_state = lambda r, p: (wire_rounds[i].append(r), spy_send(r, p))
-        inner.send_fields = lambda r, f: (wire_rounds[i].append(r), spy_fields(r, f))
+        inner.send_body = lambda r, b: (wire_rounds[i].append(r), spy_body(r, b))
         link = FaultyTransport(inner, i, faults) if faults is not None else inner
         codec = StateCodec(link, i, Compressor(compression, density, keyframe_every=10), every)
         return run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i], resend_after=0.2,
@@ -129,7 +131,7 @@ def test_a_dynamic_disk_graph_hears_only_the_neighbours_in_range():
     2 trains alone, and the rounds never wait for the links out of range."""
     where = {0: (0.0, 0.0), 1: (3.0, 0.0), 2: (40.0, 0.0)}
     hub = MemoryHub(COMPLETE3, run="links")
-    codecs = {i: StateCodec(hub.transport(i), i, radius=10.0, position=lambda i=i: where[i]) for i in COMPLETE3}
+    codecs = {i: StateCodec(MemoryLink(hub, i), i, radius=10.0, position=lambda i=i: where[i]) for i in COMPLETE3}
     seen: dict[int, set[int]] = {i: set() for i in COMPLETE3}
 
     def update(i):
@@ -151,7 +153,7 @@ def test_a_dynamic_disk_graph_hears_only_the_neighbours_in_range():
 def test_a_link_down_for_a_round_is_down_both_ways_and_for_its_resends():
     """faults.per_round: one draw per link and round, the same at both ends, so a round's
     messages and their resends are all lost together, and the loss rate is link_success's."""
-    from swarmmap.services.learner.exchange import Envelope
+    from swarmmap.services.learner.transport import Envelope
 
     faults = FaultSettings(link_success=0.3, per_round=True, seed=4)
     hub = MemoryHub({0: {1}, 1: {0}})
@@ -178,7 +180,7 @@ def test_states_carry_their_senders_coverage_and_a_foreign_grid_is_ignored(caplo
     line = {0: {1}, 1: {0, 2}, 2: {1}}
     hub = MemoryHub(line, run="links")
     cover = {0: Coverage(bounds, 0.5, left), 1: Coverage(bounds, 0.5, np.zeros((0, 2))), 2: Coverage(bounds, 0.5, right)}
-    codecs = {i: StateCodec(hub.transport(i), i, coverage=cover[i]) for i in line}
+    codecs = {i: StateCodec(MemoryLink(hub, i), i, coverage=cover[i]) for i in line}
     vec = np.arange(8, dtype=np.float32)
     codecs[0].send_state(0, vec)
     codecs[2].send_state(0, vec)

@@ -8,7 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from swarmmap.shared.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std, sample_weights
-from swarmmap.shared.models import MODEL_KINDS, StochasticNet, build_model, has_std, load_model, save_model
+from swarmmap.shared.config import MODEL_KINDS
+from swarmmap.shared.models import StochasticNet
+from swarmmap.shared.networks import build_model, has_std, load_model, save_model
 
 
 def test_layer_kl_matches_a_monte_carlo_estimate():

@@ -3,18 +3,20 @@ and key frames, and what a receiver does with a chain it cannot follow."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from swarmmap.shared.compression import Compressor, Decompressor, deflate_codes, from_bf16_bits, inflate_codes, quantise, to_bf16_bits
-from swarmmap.shared.protocol import ProtocolError, State, Tensor, decode, encode
+from swarmmap.shared.protocol import ProtocolError, State, StateBody, Tensor, decode, encode
 
 RUN = "run-c"
 
 
-def wire(fields: dict, sender: int = 1, round: int = 0) -> tuple[State, int]:
-    """A State with these encoding fields, through the codec: the decoded message and its size."""
-    payload = encode(State(run=RUN, sender=sender, round=round, **fields))
+def wire(body: StateBody, sender: int = 1, round: int = 0) -> tuple[State, int]:
+    """A State with this body, through the codec: the decoded message and its size."""
+    payload = encode(body.state(RUN, sender, round))
     return decode(payload, State, run=RUN, sender=sender), len(payload)
 
 
@@ -31,7 +33,7 @@ def vectors(n: int = 10_000, steps: int = 30, seed: int = 0):
 def test_half_precisions_round_trip_within_their_precision_at_half_the_bytes(mode, tol, ratio):
     v = next(vectors())
     plain = len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
-    msg, size = wire(Compressor(mode).fields(v))
+    msg, size = wire(Compressor(mode).body(v))
     back = Decompressor().vector(msg)
     assert back.dtype == np.float32 and back.shape == v.shape
     np.testing.assert_allclose(back, v, rtol=tol, atol=1e-6)
@@ -46,8 +48,8 @@ def test_bf16_rounds_to_nearest_even():
 
 def test_f16_sends_float32_when_values_exceed_half_precision(caplog):
     v = np.array([1.0, 1e6], np.float32)
-    fields = Compressor("f16").fields(v)
-    assert fields.get("encoding", "f32") == "f32" and "beyond half precision" in caplog.text
+    fields = Compressor("f16").body(v)
+    assert fields.encoding == "f32" and "beyond half precision" in caplog.text
     assert Decompressor().vector(wire(fields)[0]).tolist() == [1.0, 1e6]
 
 
@@ -59,14 +61,14 @@ def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mod
     c, d = Compressor(mode, density=0.02, keyframe_every=1000, rank=2, matrices=MATRICES), Decompressor()
     sent = 0
     for v in vectors():
-        back = d.vector(wire(c.fields(v))[0])
+        back = d.vector(wire(c.body(v))[0])
         np.testing.assert_array_equal(back, c.replica)  # bit for bit: both add the same float32 values
         sent += 1
     assert sent == 30
     # What the States left out stays owed, not lost: with the vector held still, the replica closes in.
     gap = np.abs(back - v).max()
     for _ in range(60):
-        back = d.vector(wire(c.fields(v))[0])
+        back = d.vector(wire(c.body(v))[0])
     if mode == "topk":
         np.testing.assert_allclose(back, v, atol=1e-6)
     elif mode == "quant":  # each State takes a third of what is still owed, or more: the copy converges
@@ -83,7 +85,7 @@ def test_chained_modes_send_a_tenth_of_the_bytes_or_less(mode, density, ratio):
     plain = compressed = 0
     for v in vectors(steps=100):
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
-        compressed += wire(c.fields(v))[1]
+        compressed += wire(c.body(v))[1]
     assert plain / compressed > ratio
 
 
@@ -100,12 +102,12 @@ def test_lowrank_carries_low_rank_drift_whole_at_about_a_tenth_of_the_bytes():
             u, w = rng.standard_normal((rows, 2)), rng.standard_normal((cols, 2))
             v[offset : offset + rows * cols] += (0.01 * u @ w.T).astype(np.float32).reshape(-1)
         v[9900:9910] += 0.01  # biases (no block covers them)
-        fields = c.fields(v)
+        fields = c.body(v)
         back = d.vector(wire(fields)[0])
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
         compressed += wire(fields)[1]
         if step:
-            assert fields["encoding"] == "lowrank" and [b[3] for b in fields["blocks"]] == [2, 2, 2]
+            assert fields.encoding == "lowrank" and [b[3] for b in fields.blocks] == [2, 2, 2]
     np.testing.assert_array_equal(back, c.replica)
     np.testing.assert_allclose(back, v, atol=1e-3)
     assert plain / compressed > 8  # (9.7: 910 values a State instead of 10,000, and a key frame)
@@ -131,7 +133,7 @@ def test_hostile_lowrank_states_are_refused(blocks, why):
 
 def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
     c, d = Compressor("topk", density=0.05, keyframe_every=5), Decompressor()
-    states = [wire(c.fields(v))[0] for v in vectors(steps=12)]
+    states = [wire(c.body(v))[0] for v in vectors(steps=12)]
     assert [s.encoding for s in states[:6]] == ["f32", "topk", "topk", "topk", "topk", "f32"]
     assert d.vector(states[0]) is not None and d.vector(states[1]) is not None
     # states[2] is lost: 3 and 4 cannot be rebuilt, and the receiver says why
@@ -145,13 +147,13 @@ def test_a_key_frame_on_demand_starts_the_chain_again():
     c, d = Compressor("topk", density=0.05, keyframe_every=100), Decompressor()
     vs = list(vectors(steps=4))
     for v in vs[:3]:
-        d.vector(wire(c.fields(v))[0])
-    again = wire(c.fields(vs[0], keyframe=True))[0]  # a State of an older round, sent again
+        d.vector(wire(c.body(v))[0])
+    again = wire(c.body(vs[0], keyframe=True))[0]  # a State of an older round, sent again
     assert again.encoding == "f32" and again.seq is not None
     fresh = Decompressor()  # a neighbour that restarted
     np.testing.assert_array_equal(fresh.vector(again), vs[0])
     np.testing.assert_array_equal(d.vector(again), vs[0])  # the others start again from it too
-    nxt = wire(c.fields(vs[3]))[0]
+    nxt = wire(c.body(vs[3]))[0]
     np.testing.assert_array_equal(fresh.vector(nxt), d.vector(nxt))
 
 
@@ -163,8 +165,8 @@ def test_quant_codes_pack_and_come_back_within_half_a_step(bits):
     assert codes.max() <= 2 ** bits - 2 and steps.shape == (4,) and steps[3] == 0
     np.testing.assert_array_equal(inflate_codes(deflate_codes(codes), v.size, bits), codes)
     c, d = Compressor("quant", keyframe_every=100, bits=bits), Decompressor()
-    d.vector(wire(c.fields(np.zeros_like(v)))[0])  # the key frame
-    back = d.vector(wire(c.fields(v))[0])
+    d.vector(wire(c.body(np.zeros_like(v)))[0])  # the key frame
+    back = d.vector(wire(c.body(v))[0])
     np.testing.assert_array_equal(back, c.replica)
     run_max = np.abs(v).reshape(4, 256).max(1)
     assert (np.abs(back - v).reshape(4, 256).max(1) <= run_max / (2 ** bits - 2) * 1.0001).all()
@@ -173,7 +175,7 @@ def test_quant_codes_pack_and_come_back_within_half_a_step(bits):
 def test_a_quant_key_frame_starts_anywhere_and_a_missed_update_waits_for_the_next():
     c = Compressor("quant", keyframe_every=4, bits=3)
     vs = list(vectors(steps=9))
-    states = [wire(c.fields(v))[0] for v in vs]
+    states = [wire(c.body(v))[0] for v in vs]
     assert [s.base for s in states[:5]] == [None, 0, 1, 2, None] and states[0].bits == 16 and states[1].bits == 3
     late = Decompressor()  # joins at the second key frame
     assert late.vector(states[3]) is None and "waiting for its next key frame" in late.why
@@ -209,8 +211,8 @@ def test_hostile_topk_states_are_refused(change, why):
     (lambda f: f.update(scales=tensor(np.array([np.nan], np.float32))), "non-finite"),
 ])
 def test_hostile_quant_states_are_refused(change, why):
-    fields = Compressor("quant", bits=3).fields(np.ones(10, np.float32))
-    doc = State(run=RUN, sender=1, round=0, **fields).model_dump(mode="python", exclude_none=True)
+    fields = Compressor("quant", bits=3).body(np.ones(10, np.float32))
+    doc = fields.state(RUN, 1, 0).model_dump(mode="python", exclude_none=True)
     change(doc)
     import msgpack
 
@@ -227,9 +229,9 @@ def test_hostile_quant_states_are_refused(change, why):
 ])
 def test_a_quant_state_whose_codes_do_not_inflate_to_its_size_is_refused_by_the_receiver(stream, why):
     c, d = Compressor("quant", bits=3), Decompressor()
-    d.vector(wire(c.fields(np.ones(10, np.float32)))[0])
-    good = c.fields(np.full(10, 2, np.float32))
-    bad = wire({**good, "params": Tensor.of(stream, "|u1")})[0]
+    d.vector(wire(c.body(np.ones(10, np.float32)))[0])
+    good = c.body(np.full(10, 2, np.float32))
+    bad = wire(dataclasses.replace(good, params=Tensor.of(stream, "|u1")))[0]
     assert d.vector(bad) is None and why in d.why and "quant State 1 of node 1 is refused" in d.why
     assert d.vector(wire(good)[0]) is not None  # a resend of the good one still adds to the chain
 

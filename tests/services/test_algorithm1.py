@@ -1,4 +1,4 @@
-"""Algorithm 1 over the in-memory transport: rounds never mix, delays and reordering change
+"""Algorithm 1 (and the clock mode) over the in-memory transport: rounds never mix, delays and reordering change
 nothing, dead or silent peers are named."""
 
 from __future__ import annotations
@@ -12,17 +12,28 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from swarmmap.services.learner.exchange import (
-    Envelope,
-    ExchangeStats,
-    MemoryHub,
-    PeerFailure,
-    implausible,
-    run_algorithm1,
-    run_timed,
-)
+from swarmmap.services.learner.algorithm1 import Algorithm1, RoundLoop
+from swarmmap.services.learner.clock import ClockExchange
+from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, PeerFailure
+from swarmmap.services.learner.screening import implausible
+from swarmmap.services.learner.transport import Envelope, Inbox, MemoryHub
 
 COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
+
+
+def run_algorithm1(node, neighbours, rounds, state, update, transport, *, start_round=0, resumed=False, stats=None,
+                   stop=None, check_state=None, rejoin=None, **rules):
+    """Algorithm 1 at one node as the learner composes it: the round machine driven by a RoundLoop."""
+    machine = Algorithm1(node, neighbours, update, transport, ExchangeRules(**rules), check=check_state, rejoin=rejoin,
+                         stats=stats, stop=stop)
+    return RoundLoop(machine).run(state, rounds, start_round, resumed)
+
+
+def run_timed(node, neighbours, rounds, state, update, transport, every_s, *, start_round=0, stats=None, stop=None,
+              check_state=None, forget=None, **rules):
+    """The clock mode at one node."""
+    return ClockExchange(node, neighbours, update, transport, every_s, ExchangeRules(**rules), check=check_state,
+                         forget=forget, stats=stats, stop=stop).run(state, rounds, start_round)
 RING4 = {0: {1, 3}, 1: {0, 2}, 2: {1, 3}, 3: {2, 0}}
 
 
@@ -172,7 +183,6 @@ def test_a_lost_neighbour_is_left_out_and_named(caplog):
 
 
 def test_implausible_states_are_named():
-    from swarmmap.services.learner.exchange import implausible
 
     own = np.linspace(-1, 1, 100)
     assert implausible(own + 0.01, own, 0.5) is None
@@ -185,7 +195,6 @@ def test_implausible_states_are_named():
 def test_hostile_and_far_future_states_are_refused_and_the_rounds_go_on():
     """A hostile member sends zero States for rounds 0-2 before the honest ones and States far
     in the future: node 0 refuses them (counted), and ends exactly where the clean run ends."""
-    from swarmmap.services.learner.exchange import implausible
 
     graph = {0: {1}, 1: {0}}
     init = {0: np.linspace(1, 2, 8), 1: np.linspace(1, 2, 8)}
@@ -325,7 +334,6 @@ def test_a_neighbour_whose_every_state_is_refused_is_left_out_and_the_rounds_go_
     """A member that keeps talking (States and RoundCompletes, all the time) but whose every
     State is refused is not waited on forever: after silent_after without a State this node
     could take, it is left out, named, and the others finish."""
-    from swarmmap.services.learner.exchange import implausible
 
     graph = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
     hub = MemoryHub(graph)
@@ -456,7 +464,6 @@ def test_the_inbox_bounds_what_one_neighbour_can_queue_and_never_holds_another_b
     """A member flooding its link fills only its own share of the inbox: its further messages
     are dropped and counted, an honest neighbour's still come through, and once the node has
     taken what waited, the flooder's next message is queued again."""
-    from swarmmap.services.learner.exchange import Envelope, Inbox
 
     inbox = Inbox(per_sender=8)
     flood = [inbox.put(Envelope("state", 1, r, np.zeros(4, np.float32))) for r in range(1000)]

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from swarmmap.shared.config import GraphSpec
+
 
 class GraphError(ValueError):
     """A graph file or setting that cannot be used; the message names the problem."""
@@ -78,17 +80,6 @@ def metropolis_weights(graph: dict[int, set[int]], node: int) -> dict[int, float
     return row
 
 
-def dynamic_graph(settings) -> bool:
-    """Whether the run's disk graph changes while the robots drive (graph disk with online data):
-    every robot may then become every other's neighbour, and each message's range decides."""
-    return settings.graph == "disk" and settings.data == "online"
-
-
-def run_graph(settings, robots: int, positions: np.ndarray | None) -> dict[int, set[int]]:
-    """The communication graph a run's LearnerSettings describe: none for the baselines that do
-    not communicate (individual, centralized); complete for a dynamic disk graph, whose links
-    come and go with the robots' distance (``StateCodec``); else ``settings.graph``."""
-    kind = "none" if settings.algorithm in ("individual", "centralized") else settings.graph
-    if kind == "disk" and dynamic_graph(settings):
-        kind = "complete"
-    return neighbour_sets(kind, robots, graph_file=settings.graph_file, radius=settings.comm_radius_m, positions=positions)
+def run_graph(spec: GraphSpec, robots: int, positions: np.ndarray | None) -> dict[int, set[int]]:
+    """The communication graph of a run (:meth:`~swarmmap.shared.config.RunConfig.graph`)."""
+    return neighbour_sets(spec.kind, robots, graph_file=spec.file, radius=spec.radius_m, positions=positions)

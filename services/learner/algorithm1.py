@@ -1,0 +1,275 @@
+"""The paper's Algorithm 1 (Peers State Exchange) as a round state machine, free of any transport.
+
+A node sends ``State(round)``, waits for every neighbour's State of that round, runs its node
+update, sends ``RoundComplete(round)`` and finishes the round (:meth:`Algorithm1.finish_round`,
+the paper's FINISHROUND) once every neighbour is complete or a neighbour's State of a later
+round shows that it has moved on. Finishing sends ``State(round + 1)`` with the updated
+parameters. Messages come in through :meth:`Algorithm1.on_state` and
+:meth:`Algorithm1.on_complete`; :meth:`Algorithm1.run` drives the machine over a
+:class:`~swarmmap.services.learner.transport.Transport`.
+
+Beyond the paper's listing: messages are buffered per round, so an early State is kept for its
+round and a late or duplicate one is ignored (rounds never mix); a node never finishes a round
+before its own update; this round's messages are sent again after ``resend_after`` seconds
+without progress (receivers ignore duplicates). Robots come and go
+(:mod:`~swarmmap.services.learner.membership`): a neighbour that left or went silent is left
+out and the round finishes with the neighbours the node has; it is taken back when it sends a
+State of the round at hand; a node that restarts behind its team replays the rounds it lost or
+catches up to the team's round. Only a node left with no neighbour at all for ``peer_timeout``
+seconds stops, with :class:`~swarmmap.services.learner.exchange.PeerFailure`. A node with no
+neighbours in its graph trains alone.
+
+Poor links (``round_wait`` > 0): a node that has been ``round_wait`` seconds in a round runs its
+update with the neighbours' States that have arrived (none, if none has) and finishes the round
+without waiting for the RoundCompletes still missing. The team's rounds then drift apart: a
+neighbour's State of another round is kept as its newest word and given to the update of a
+round that got none of its own from it; nothing is replayed. The neighbours a round went on
+without are missing from it only (``stats.missed``); nobody is left out for it.
+
+This module imports no wire protocol, codec, bus or Zenoh: it sees vectors and rounds only.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from swarmmap.services.learner.exchange import (
+    CHECK_EVERY_S,
+    ROUNDS_AHEAD,
+    ExchangeRules,
+    ExchangeStats,
+    NodeUpdate,
+    Rejoin,
+    StateCheck,
+    refuse,
+)
+from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.transport import Envelope, Transport
+
+log = logging.getLogger("learner")
+
+
+class Algorithm1:
+    """One node's rounds. ``update(round, state, {peer: state})`` is its NODEUPDATE; it sees
+    exactly the States of ``round`` of the neighbours it has. ``check(theirs, own)`` may refuse
+    a State (it returns why; counted in ``stats.refused``, as States more than ROUNDS_AHEAD rounds
+    ahead). A node ``resumed`` behind its team, before it has finished a round with a neighbour,
+    or one left behind (stuck in a round for longer than ``silent_after``) jumps to the round of
+    a plausible State further ahead than the team can replay, from ``rejoin(own, {peer: state})``."""
+
+    def __init__(self, node_id: int, neighbours: set[int], update: NodeUpdate, transport: Transport,
+                 rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None, rejoin: Rejoin | None = None,
+                 stats: ExchangeStats | None = None, stop: threading.Event | None = None):
+        self.node_id, self.neighbours, self.update, self.transport, self.rules = node_id, set(neighbours), update, transport, rules
+        self.check, self.rejoin, self.stop = check, rejoin, stop
+        self.stats = stats if stats is not None else ExchangeStats()
+        self.begin(np.zeros(0, np.float32), 0, 0, False)
+
+    def begin(self, state: np.ndarray, rounds: int, start_round: int, resumed: bool) -> None:
+        """Start afresh at round ``start_round`` of ``rounds`` from ``state``."""
+        self.members = Membership(self.node_id, self.neighbours, self.rules, self.stats)
+        self.replay = Replay(self.node_id, self.rules.keep_rounds, self.rules.resend_after, self.stats)
+        self.late = LateStates()
+        self.buf = RoundBuffer()
+        self.rnd, self.rounds, self.updated, self.joining = start_round, rounds, False, resumed
+        self.round_started = time.monotonic()
+        self.state = self.round_state = state  # round_state: what State(rnd) carries, the round's start (resent as such)
+
+    def advance(self) -> bool:
+        """Update and finish rounds as far as the buffered messages allow; whether anything moved."""
+        moved = False
+        while self.rnd < self.rounds and (self.node_update() | self.finish_round()):
+            moved = True
+        return moved
+
+    def node_update(self) -> bool:
+        """NODEUPDATE once every neighbour of the round sent its State (or its wait is over), then RoundComplete."""
+        peers, active = self.buf.states[self.rnd], self.members.active
+        ready = (active or not self.neighbours) and active <= peers.keys()
+        if self.updated or not (ready or self.wait_over()):
+            return False
+        busy_since = time.monotonic()
+        used = self.late.fill({j: peers[j] for j in active & peers.keys()}, active, self.rnd)
+        self.stats.missed += len(active) - len(used)
+        self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
+        self.members.paused(time.monotonic() - busy_since)
+        self.updated = True
+        self.send_complete()
+        return True
+
+    def finish_round(self) -> bool:
+        """The paper's FINISHROUND: once the node has updated and every neighbour of the round is
+        complete, or one has moved on (its State of the next round is here), go to the next
+        round and send its State. Returns whether it did."""
+        moved_on = any(j in self.buf.states[self.rnd + 1] for j in self.neighbours)
+        if not (self.updated and (self.members.active <= self.buf.complete[self.rnd] or moved_on or self.wait_over())):
+            return False
+        self.joining = self.joining and not self.members.active
+        self.buf.drop(self.rnd)
+        self.rnd += 1
+        self.updated = False
+        self.round_started = time.monotonic()
+        self.stats.rounds_done += 1
+        self.members.next_round(self.rnd)
+        self.round_state = self.state
+        self.send_state()
+        return True
+
+    def wait_over(self) -> bool:
+        """Poor links: this round has waited ``round_wait`` seconds for messages."""
+        return self.rules.round_wait > 0 and time.monotonic() - self.round_started >= self.rules.round_wait
+
+    def on_message(self, msg: Envelope, now: float) -> None:
+        """Route one neighbour's message: poor links' other rounds, a neighbour behind, or this node's rounds."""
+        newest = self.replay.seen(msg.sender, msg.round) if msg.kind == "state" else False
+        if self.rules.round_wait > 0 and not self.joining and not self.rnd <= msg.round <= self.rnd + ROUNDS_AHEAD:
+            self.on_late(msg, now)
+        elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
+            if newest:
+                self.replay.answer(msg.sender, msg.round, self.rnd, self.transport, now)
+        elif msg.kind == "complete":
+            self.on_complete(msg, now)
+        else:
+            self.on_state(msg, now)
+
+    def on_late(self, msg: Envelope, now: float) -> None:
+        """Poor links: a State of another round is the neighbour's newest word, kept for a round
+        that gets none from it (nothing is replayed: a node behind catches up by its timeouts)."""
+        self.members.heard_from(msg.sender, now)
+        if msg.kind == "state" and msg.round >= self.late.newest_round(msg.sender):
+            if self.members.judge(msg, self.check, self.state):
+                self.late.keep(msg.sender, msg.round, msg.params)
+
+    def on_complete(self, msg: Envelope, now: float) -> None:
+        """A neighbour's RoundComplete of this round or one ahead."""
+        self.members.heard_from(msg.sender, now)
+        if msg.round <= self.rnd + ROUNDS_AHEAD:
+            self.buf.complete[msg.round].add(msg.sender)
+
+    def on_state(self, msg: Envelope, now: float) -> None:
+        """A State of this round or a later one: kept for its round, a reason to catch up, or refused."""
+        j, r = msg.sender, msg.round
+        self.members.heard_from(j, now)
+        if j in self.buf.states[r]:
+            return  # the first State of a round counts
+        keep = self.rules.keep_rounds
+        # Left behind: stuck in this round for longer than the neighbours wait for anyone, while
+        # they are further ahead than they can replay. They left this node out (it was slow to
+        # start, or starved of CPU): catch up with them rather than wait for rounds nobody will send.
+        left_behind = (now - self.round_started > self.rules.silent_after
+                       and self.rnd + max(keep, ROUNDS_AHEAD) < r <= self.rounds)
+        jump = (self.joining and not self.updated and self.rnd + keep < r <= self.rounds) or left_behind
+        if r > self.rnd + ROUNDS_AHEAD and not jump:
+            if not (self.joining and r <= self.rnd + keep):  # (those are the replay's, coming)
+                refuse(self.stats, self.node_id, msg, f"round {r} while this node is at round {self.rnd}", "far-future")
+            return
+        stale = (self.joining and not self.updated) or left_behind  # a node catching up cannot judge distances
+        if not self.members.judge(msg, self.check, None if stale else self.state):
+            return
+        if jump:
+            self.catch_up(msg, now, left_behind)
+            return
+        self.buf.states[r][j] = msg.params
+        if j not in self.members.active:
+            self.members.came_back(j, self.rnd, now_round=r == self.rnd and not self.updated)
+
+    def catch_up(self, msg: Envelope, now: float, left_behind: bool) -> None:
+        """The team is too far ahead to replay: jump to its round, from ``rejoin``'s State."""
+        j = msg.sender
+        log.info("node %d: neighbour %d is at round %d; catching up from round %d%s", self.node_id, j, msg.round, self.rnd,
+                 f" (left behind for {now - self.round_started:.0f} s)" if left_behind else "")
+        self.buf.keep_from(msg.round)
+        self.rnd, self.updated, self.round_started = msg.round, False, now
+        self.buf.states[self.rnd][j] = msg.params
+        if self.rejoin is not None:
+            self.state = self.rejoin(self.state, dict(self.buf.states[self.rnd]))
+        self.round_state = self.state
+        self.members.jumped(j, set(self.buf.states[self.rnd]))
+        self.stats.caught_up += 1
+        self.send_state()
+
+    def send_state(self) -> None:
+        t0 = time.perf_counter()
+        self.replay.remember(self.rnd, self.round_state)
+        self.transport.send_state(self.rnd, self.round_state)
+        self.stats.send_s += time.perf_counter() - t0
+
+    def send_complete(self) -> None:
+        t0 = time.perf_counter()
+        self.transport.send_round_complete(self.rnd)
+        self.stats.send_s += time.perf_counter() - t0
+
+
+class RoundLoop:
+    """Drives an :class:`Algorithm1` over its transport: listens for messages, looks every
+    CHECK_EVERY_S for neighbours gone or silent, resends the round's messages after
+    ``resend_after`` seconds without progress, and waits for the final States."""
+
+    def __init__(self, machine: Algorithm1):
+        self.m = machine
+        self.last_progress = time.monotonic()
+
+    def run(self, state: np.ndarray, rounds: int, start_round: int = 0, resumed: bool = False) -> np.ndarray:
+        """Run rounds ``start_round .. rounds - 1`` from ``state``; return the final state. After
+        the last round the node waits up to ``linger`` seconds for its neighbours' final States
+        (``stats.final_peers``), which also gives its own last messages time to reach them."""
+        m = self.m
+        m.begin(state, rounds, start_round, resumed)
+        m.send_state()
+        last_check = self.last_progress = time.monotonic()
+        while m.rnd < rounds:
+            if m.stop is not None and m.stop.is_set():
+                raise InterruptedError(f"node {m.node_id} stopped at round {m.rnd}")
+            if m.advance():
+                self.last_progress = time.monotonic()
+            if m.rnd >= rounds:
+                break
+            now = time.monotonic()
+            if now - last_check >= CHECK_EVERY_S:  # whatever arrives, look at who is gone or silent
+                last_check = now
+                self.housekeeping(now)
+                continue  # the neighbours left out may let the round advance
+            self.listen()
+        m.stats.final_peers = self.final_states()
+        return m.state
+
+    def housekeeping(self, now: float) -> None:
+        """Leave out the neighbours this round waits on that are gone or silent; resend this
+        round's messages after ``resend_after`` seconds without progress."""
+        m = self.m
+        lost = m.transport.lost_peers()
+        m.replay.forget(lost)
+        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.updated, m.rnd, now)
+        if now - self.last_progress > m.rules.resend_after:
+            m.send_state()
+            if m.updated:
+                m.send_complete()
+            m.stats.resends += 1
+            self.last_progress = now
+
+    def listen(self) -> None:
+        """Wait for the next message (at most until the next check, or the end of the round's wait)."""
+        m = self.m
+        t0 = time.perf_counter()
+        timeout = CHECK_EVERY_S
+        if m.rules.round_wait > 0:  # wake when this round's wait for States or RoundCompletes is over
+            timeout = min(timeout, max(0.005, m.round_started + m.rules.round_wait - time.monotonic()))
+        msg = m.transport.receive(timeout=timeout)
+        m.stats.wait_s += time.perf_counter() - t0
+        if msg is not None and msg.sender in m.neighbours:
+            m.on_message(msg, time.monotonic())
+
+    def final_states(self) -> dict[int, np.ndarray]:
+        """Wait up to ``linger`` seconds for the active neighbours' States of the last round."""
+        m = self.m
+        deadline = time.monotonic() + m.rules.linger
+        final = m.buf.states[m.rounds]
+        while not m.members.active <= final.keys() and time.monotonic() < deadline:
+            msg = m.transport.receive(timeout=max(0.0, min(0.2, deadline - time.monotonic())))
+            if msg is not None and msg.kind == "state" and msg.sender in m.neighbours and msg.round == m.rounds:
+                final[msg.sender] = msg.params
+        return dict(final)

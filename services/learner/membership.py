@@ -1,0 +1,203 @@
+"""Who an Algorithm 1 round waits for, and what a node keeps for the neighbours that lag.
+
+Robots come and go (the paper assumes they do not). :class:`Membership` holds the neighbours a
+round waits for (``active``): one whose liveliness token vanished (and did not come back within
+``rejoin_wait`` seconds, the time a launcher needs to restart it), that stayed silent for
+``silent_after`` seconds while this node waited on it, or that sent only States this node
+refuses for that long, is left out, and the round finishes with the neighbours the node has.
+It is taken back once it sends a State of the round at hand (at once) or of a later one (from
+the next round). Silence is counted while the node waits, not while it computes
+(:meth:`Membership.paused`).
+
+:class:`Replay` keeps the States a node sent in its last ``keep_rounds`` rounds and sends them
+again to a neighbour that restarted behind, so that it replays the rounds it lost with exactly
+the States its neighbours had. :class:`LateStates` (poor links, ``round_wait``) keeps each
+neighbour's newest State of another round for a round that gets none of its own from it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, PeerFailure, StateCheck, refuse
+from swarmmap.services.learner.transport import Envelope, Transport
+
+log = logging.getLogger("learner")
+
+
+@dataclass
+class RoundBuffer:
+    """Messages buffered per round: an early State waits for its round, rounds never mix."""
+
+    states: dict[int, dict[int, np.ndarray]] = field(default_factory=lambda: defaultdict(dict))
+    complete: dict[int, set[int]] = field(default_factory=lambda: defaultdict(set))
+
+    def drop(self, rnd: int) -> None:
+        """Forget round ``rnd`` (finished)."""
+        self.states.pop(rnd, None)
+        self.complete.pop(rnd, None)
+
+    def keep_from(self, rnd: int) -> None:
+        """Forget every round before ``rnd`` (a node that jumped ahead)."""
+        self.states = defaultdict(dict, {r: v for r, v in self.states.items() if r >= rnd})
+        self.complete = defaultdict(set, {r: v for r, v in self.complete.items() if r >= rnd})
+
+    def still_needed(self, among: set[int], rnd: int, updated: bool) -> set[int]:
+        """The neighbours of ``among`` that round ``rnd`` still waits on: their State before the
+        update, after it their RoundComplete (none once one has moved on to the next round)."""
+        if not updated:
+            return among - self.states[rnd].keys()
+        if any(j in self.states[rnd + 1] for j in among):
+            return set()
+        return among - self.complete[rnd]
+
+
+class Membership:
+    """The neighbours a node's rounds wait for, and when each was last heard."""
+
+    def __init__(self, node_id: int, neighbours: set[int], rules: ExchangeRules, stats: ExchangeStats):
+        self.node_id, self.neighbours, self.rules, self.stats = node_id, frozenset(neighbours), rules, stats
+        self.active = set(neighbours)  # the neighbours this round waits for
+        self.returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
+        now = time.monotonic()
+        self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
+        self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
+        self.lost_since: dict[int, float] = {}
+        self.alone_since: float | None = None
+
+    def heard_from(self, j: int, now: float) -> None:
+        self.heard[j] = now
+
+    def judge(self, msg: Envelope, check: StateCheck | None, own: np.ndarray | None) -> bool:
+        """Whether a neighbour's State passes ``check`` (against ``own``); a refused one is counted,
+        and when the neighbour's refused States began is kept (it is left out if they go on)."""
+        why = check(msg.params, own) if check is not None else None
+        if why is None:
+            self.refused_since.pop(msg.sender, None)
+            return True
+        self.refused_since.setdefault(msg.sender, time.monotonic())
+        refuse(self.stats, self.node_id, msg, why, "implausible")
+        return False
+
+    def paused(self, busy: float) -> None:
+        """The node computed for ``busy`` seconds: silence counts while it listens, not meanwhile
+        (what the neighbours sent meanwhile waits in its inbox)."""
+        for j in self.heard:
+            self.heard[j] += busy
+            if j in self.refused_since:
+                self.refused_since[j] += busy
+
+    def leave_out(self, j: int, why: str, rnd: int) -> None:
+        self.active.discard(j)
+        self.stats.left_out += 1
+        log.warning("node %d: neighbour %d %s; round %d goes on without it", self.node_id, j, why, rnd)
+
+    def came_back(self, j: int, rnd: int, now_round: bool) -> None:
+        """Neighbour ``j``, left out, sent a State: of the round at hand before the update
+        (``now_round``: taken back at once) or of a later one (back from the next round)."""
+        if now_round:
+            self.active.add(j)
+            self.stats.rejoined += 1
+            log.info("node %d: neighbour %d back in round %d", self.node_id, j, rnd)
+        else:
+            self.returning.add(j)
+
+    def next_round(self, rnd: int) -> None:
+        """Round ``rnd`` begins: the neighbours returning are waited for again."""
+        if self.returning:
+            log.info("node %d: neighbour(s) %s back from round %d", self.node_id, sorted(self.returning), rnd)
+            self.active.update(self.returning)
+            self.stats.rejoined += len(self.returning)
+            self.returning.clear()
+
+    def jumped(self, j: int, present: set[int]) -> None:
+        """The node caught up with neighbour ``j``'s round, where ``present`` sent their States
+        too: they are waited for; the others come back once they reach it."""
+        self.active = {j} | (self.active & present)
+        self.returning = set(self.neighbours) - self.active
+
+    def check(self, needed: set[int], lost: set[int], updated: bool, rnd: int, now: float) -> None:
+        """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
+        refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``."""
+        self.lost_since = {j: self.lost_since.get(j, now) for j in lost}
+        r = self.rules
+        for j in sorted(needed):
+            if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
+                self.leave_out(j, "left (its liveliness token vanished)" + (
+                    f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
+            elif now - self.heard[j] > r.silent_after:
+                self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
+            elif not updated and now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
+                self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
+        if self.neighbours and not self.active:
+            self.alone_since = self.alone_since or now
+            if now - self.alone_since > r.peer_timeout:
+                raise PeerFailure(f"node {self.node_id}: no neighbour for {r.peer_timeout:.0f} s in round {rnd} "
+                                  f"(neighbour(s) {sorted(self.neighbours)} left or went silent)")
+        else:
+            self.alone_since = None
+
+
+class Replay:
+    """A node's own States of its last ``keep_rounds`` rounds, sent again to a neighbour behind."""
+
+    def __init__(self, node_id: int, keep_rounds: int, resend_after: float, stats: ExchangeStats):
+        self.node_id, self.keep_rounds, self.resend_after, self.stats = node_id, keep_rounds, resend_after, stats
+        self.history: dict[int, np.ndarray] = {}
+        self.replayed: dict[tuple[int, int], float] = {}  # (neighbour, round) -> when it was last replayed
+        self.newest: dict[int, int] = {}  # newest round of a State from each neighbour (forgotten when it leaves)
+
+    def remember(self, rnd: int, state: np.ndarray) -> None:
+        self.history[rnd] = state
+        for old in [r for r in self.history if r < rnd - self.keep_rounds]:
+            del self.history[old]
+
+    def seen(self, j: int, r: int) -> bool:
+        """Note neighbour ``j``'s State of round ``r``; whether it is its newest word (not a
+        replay of its own old States, which a restarted neighbour's neighbours send it)."""
+        newest = r >= self.newest.get(j, -1)
+        self.newest[j] = max(self.newest.get(j, -1), r)
+        return newest
+
+    def forget(self, lost: set[int]) -> None:
+        for j in lost:
+            self.newest.pop(j, None)
+
+    def answer(self, j: int, r: int, rnd: int, transport: Transport, now: float) -> None:
+        """Neighbour ``j`` is back at round ``r`` < ``rnd``: send it rounds ``r .. rnd`` again
+        (at most once every ``resend_after`` seconds for a round)."""
+        if r not in self.history or now - self.replayed.get((j, r), -1e9) <= self.resend_after:
+            return
+        self.replayed[(j, r)] = now
+        log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", self.node_id, j, r, r, rnd)
+        for k in range(r, rnd + 1):
+            transport.send_state(k, self.history[k])
+        self.stats.replayed += rnd + 1 - r
+
+
+class LateStates:
+    """Poor links: each neighbour's newest State of another round than the one at hand."""
+
+    def __init__(self) -> None:
+        self.late: dict[int, tuple[int, np.ndarray]] = {}
+
+    def newest_round(self, j: int) -> int:
+        return self.late.get(j, (-1, None))[0]
+
+    def keep(self, j: int, r: int, params: np.ndarray) -> None:
+        self.late[j] = (r, params)
+
+    def fill(self, used: dict[int, np.ndarray], active: set[int], rnd: int) -> dict[int, np.ndarray]:
+        """``used`` (the States of round ``rnd``), with the newest late State of every active
+        neighbour that sent none of this round; late States older than this round's are dropped."""
+        for j in list(self.late):
+            if j in used and self.late[j][0] <= rnd:
+                del self.late[j]  # older than the State of this round
+            elif j in active and j not in used:
+                used[j] = self.late.pop(j)[1]  # this round's did not come: the newest of another round
+        return used
