@@ -192,6 +192,9 @@ def close_doors(plan: FloorPlan, fraction: float = 0.0, named: list[int] | None 
     return picked
 
 
+Edge = tuple[int, int, bool, float, float, float]  # a possible door: cells a, b, vertical?, position across, lo, hi along
+
+
 def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, room_max: float = 4.5,
                wall_thickness: float = 0.12, door_width: float = 0.9, extra_door_prob: float = 0.3,
                corridor_width: float = 1.3) -> FloorPlan:
@@ -209,59 +212,8 @@ def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, 
         bands.append(("corridor", corridor_width))
     bands += [("row", h) for h in heights[split:]]
     ys = np.concatenate([[0.0], np.cumsum([h for _, h in bands])])
-    cells: list[tuple[str, Polygon]] = []
-    grid_ids: dict[tuple[int, int], int] = {}
-    corridor = -1
-    row = 0
-    for band, (kind, _) in enumerate(bands):
-        if kind == "corridor":
-            corridor = len(cells)
-            cells.append(("corridor", box(xs[0], ys[band], xs[-1], ys[band + 1])))
-            continue
-        for i in range(rooms_x):
-            grid_ids[(i, row)] = len(cells)
-            cells.append((f"room-{row}-{i}", box(xs[i], ys[band], xs[i + 1], ys[band + 1])))
-        row += 1
-    band_of_row = [b for b, (kind, _) in enumerate(bands) if kind == "row"]
-
-    # Doors: (cell a, cell b, orientation, position across, lo, hi along the shared edge).
-    edges: list[tuple[int, int, bool, float, float, float]] = []
-    for r in range(rooms_y):
-        b = band_of_row[r]
-        for i in range(1, rooms_x):
-            edges.append((grid_ids[(i - 1, r)], grid_ids[(i, r)], True, xs[i], ys[b], ys[b + 1]))
-    chosen: list[tuple[int, int, bool, float, float, float]] = []
-    parent = list(range(len(cells)))
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    def join(e: tuple[int, int, bool, float, float, float]) -> None:
-        parent[find(e[0])] = find(e[1])
-        chosen.append(e)
-
-    for r in range(rooms_y):
-        for i in range(rooms_x):
-            b = band_of_row[r]
-            if corridor >= 0 and (b + 1 < len(bands) and bands[b + 1][0] == "corridor"):
-                join((grid_ids[(i, r)], corridor, False, ys[b + 1], xs[i], xs[i + 1]))
-            elif corridor >= 0 and b > 0 and bands[b - 1][0] == "corridor":
-                join((grid_ids[(i, r)], corridor, False, ys[b], xs[i], xs[i + 1]))
-            elif corridor >= 0:  # further out: a door towards the corridor
-                toward = r + 1 if b < band_of_row[split] else r - 1
-                nb = band_of_row[toward]
-                join((grid_ids[(i, r)], grid_ids[(i, toward)], False, ys[max(b, nb)], xs[i], xs[i + 1]))
-    vertical = [(grid_ids[(i, r - 1)], grid_ids[(i, r)], False, ys[band_of_row[r]], xs[i], xs[i + 1])
-                for r in range(1, rooms_y) for i in range(rooms_x)] if corridor < 0 else []
-    candidates = edges + vertical
-    for k in rng.permutation(len(candidates)):
-        e = candidates[k]
-        if find(e[0]) != find(e[1]) or rng.uniform() < extra_door_prob:
-            join(e)
-
+    cells, grid_ids, corridor = _cells(bands, xs, ys, rooms_x)
+    chosen = _doorways(rng, bands, xs, ys, grid_ids, corridor, len(cells), rooms_x, rooms_y, split, extra_door_prob)
     doors = []
     slack = door_width / 2 + t / 2 + 0.15
     for a, b_, vertical_edge, across, lo, hi in chosen:
@@ -275,3 +227,76 @@ def procedural(rooms_x: int, rooms_y: int, seed: int, *, room_min: float = 2.5, 
     rooms = [cell.buffer(-t / 2, join_style="mitre") for _, cell in cells]
     name = f"procedural-{rooms_x}x{rooms_y}-seed{seed}"
     return FloorPlan(name, f"procedural:{rooms_x}x{rooms_y}:seed{seed}", walls, rooms, [n for n, _ in cells], doors)
+
+
+def _cells(bands: list[tuple[str, float]], xs: np.ndarray, ys: np.ndarray, rooms_x: int
+           ) -> tuple[list[tuple[str, Polygon]], dict[tuple[int, int], int], int]:
+    """The plan's cells (rooms by row and column, the corridor), each room's cell index, the corridor's (-1: none)."""
+    cells: list[tuple[str, Polygon]] = []
+    grid_ids: dict[tuple[int, int], int] = {}
+    corridor = -1
+    row = 0
+    for band, (kind, _) in enumerate(bands):
+        if kind == "corridor":
+            corridor = len(cells)
+            cells.append(("corridor", box(xs[0], ys[band], xs[-1], ys[band + 1])))
+            continue
+        for i in range(rooms_x):
+            grid_ids[(i, row)] = len(cells)
+            cells.append((f"room-{row}-{i}", box(xs[i], ys[band], xs[i + 1], ys[band + 1])))
+        row += 1
+    return cells, grid_ids, corridor
+
+
+def _doorways(rng: np.random.Generator, bands, xs, ys, grid_ids, corridor: int, n_cells: int, rooms_x: int, rooms_y: int,
+              split: int, extra_door_prob: float) -> list[Edge]:
+    """The shared edges that get a door: every room towards the corridor, then, in a random order,
+    each other edge that connects what is not yet connected, or with ``extra_door_prob``."""
+    band_of_row = [b for b, (kind, _) in enumerate(bands) if kind == "row"]
+    edges: list[Edge] = []
+    for r in range(rooms_y):
+        b = band_of_row[r]
+        for i in range(1, rooms_x):
+            edges.append((grid_ids[(i - 1, r)], grid_ids[(i, r)], True, xs[i], ys[b], ys[b + 1]))
+    chosen: list[Edge] = []
+    parent = list(range(n_cells))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    def join(e: Edge) -> None:
+        parent[find(e[0])] = find(e[1])
+        chosen.append(e)
+
+    if corridor >= 0:
+        for e in _towards_corridor(bands, band_of_row, xs, ys, grid_ids, corridor, rooms_x, rooms_y, split):
+            join(e)
+    vertical = [(grid_ids[(i, r - 1)], grid_ids[(i, r)], False, ys[band_of_row[r]], xs[i], xs[i + 1])
+                for r in range(1, rooms_y) for i in range(rooms_x)] if corridor < 0 else []
+    candidates = edges + vertical
+    for k in rng.permutation(len(candidates)):
+        e = candidates[k]
+        if find(e[0]) != find(e[1]) or rng.uniform() < extra_door_prob:
+            join(e)
+    return chosen
+
+
+def _towards_corridor(bands, band_of_row, xs, ys, grid_ids, corridor: int, rooms_x: int, rooms_y: int, split: int
+                      ) -> list[Edge]:
+    """A door for every room: onto the corridor where it lies beside it, else towards it."""
+    out: list[Edge] = []
+    for r in range(rooms_y):
+        for i in range(rooms_x):
+            b = band_of_row[r]
+            if b + 1 < len(bands) and bands[b + 1][0] == "corridor":
+                out.append((grid_ids[(i, r)], corridor, False, ys[b + 1], xs[i], xs[i + 1]))
+            elif b > 0 and bands[b - 1][0] == "corridor":
+                out.append((grid_ids[(i, r)], corridor, False, ys[b], xs[i], xs[i + 1]))
+            else:  # further out: a door towards the corridor
+                toward = r + 1 if b < band_of_row[split] else r - 1
+                nb = band_of_row[toward]
+                out.append((grid_ids[(i, r)], grid_ids[(i, toward)], False, ys[max(b, nb)], xs[i], xs[i + 1]))
+    return out

@@ -322,39 +322,43 @@ class State(Message):
         _require(self.params, "params", dtype, 1)
         if self.encoding == "bf16" and (self.params.numpy() & 0x7F80 == 0x7F80).any():
             raise ValueError("params: non-finite values")
-        chained = self.encoding in CHAINED_ENCODINGS
         if (self.bits is not None) != (self.encoding == "quant"):
             raise ValueError("bits belong to quant States, and every quant State has them")
         if (self.blocks is not None) != (self.encoding == "lowrank"):
             raise ValueError("blocks belong to lowrank States, and every lowrank State has them")
-        if not chained:
+        if self.encoding not in CHAINED_ENCODINGS:
             if any(x is not None for x in (self.indices, self.size, self.base, self.scales)):
                 raise ValueError(f"indices, size, base and scales belong to chained States, not {self.encoding}")
             return self
         if self.size is None or self.seq is None or (self.base is None and self.encoding != "quant"):
             raise ValueError(f"a {self.encoding} State needs size, seq and base")
-        if self.encoding == "lowrank":
-            if self.indices is not None or self.scales is not None:
-                raise ValueError("a lowrank State has no indices or scales")
-            values, end = self.size, 0
-            for offset, rows, cols, rank in self.blocks:
-                if offset < end or rows * cols > self.size - offset or not 1 <= rank <= min(rows, cols):
-                    raise ValueError(f"lowrank block [{offset}, {rows}, {cols}, {rank}] overlaps another, runs past size "
-                                     f"{self.size} or has a rank outside 1..min(rows, cols)")
-                end = offset + rows * cols
-                values += rank * (rows + cols) - rows * cols
-            if self.params.shape[0] != values:
-                raise ValueError(f"a lowrank State of size {self.size} with these blocks needs {values} values")
-            return self
-        if self.encoding in ("sign", "quant"):
-            if self.indices is not None or self.scales is None:
-                raise ValueError(f"a {self.encoding} State needs scales and no indices")
-            _require(self.scales, "scales", "<f4", 1)
-            if self.scales.shape[0] != -(-self.size // SCALE_CHUNK):
-                raise ValueError(f"a {self.encoding} State of size {self.size} needs {-(-self.size // SCALE_CHUNK)} scales")
-            if self.encoding == "sign" and self.params.shape[0] != -(-self.size // 8):
-                raise ValueError(f"a sign State of size {self.size} needs {-(-self.size // 8)} bytes of signs")
-            return self
+        {"lowrank": self._lowrank_shapes, "sign": self._dense_shapes, "quant": self._dense_shapes,
+         "topk": self._topk_shapes}[self.encoding]()
+        return self
+
+    def _lowrank_shapes(self) -> None:
+        if self.indices is not None or self.scales is not None:
+            raise ValueError("a lowrank State has no indices or scales")
+        values, end = self.size, 0
+        for offset, rows, cols, rank in self.blocks:
+            if offset < end or rows * cols > self.size - offset or not 1 <= rank <= min(rows, cols):
+                raise ValueError(f"lowrank block [{offset}, {rows}, {cols}, {rank}] overlaps another, runs past size "
+                                 f"{self.size} or has a rank outside 1..min(rows, cols)")
+            end = offset + rows * cols
+            values += rank * (rows + cols) - rows * cols
+        if self.params.shape[0] != values:
+            raise ValueError(f"a lowrank State of size {self.size} with these blocks needs {values} values")
+
+    def _dense_shapes(self) -> None:
+        if self.indices is not None or self.scales is None:
+            raise ValueError(f"a {self.encoding} State needs scales and no indices")
+        _require(self.scales, "scales", "<f4", 1)
+        if self.scales.shape[0] != -(-self.size // SCALE_CHUNK):
+            raise ValueError(f"a {self.encoding} State of size {self.size} needs {-(-self.size // SCALE_CHUNK)} scales")
+        if self.encoding == "sign" and self.params.shape[0] != -(-self.size // 8):
+            raise ValueError(f"a sign State of size {self.size} needs {-(-self.size // 8)} bytes of signs")
+
+    def _topk_shapes(self) -> None:
         if self.indices is None or self.scales is not None:
             raise ValueError("a topk State needs indices, size, seq and base")
         _require(self.indices, "indices", "<u4", 1)
@@ -363,7 +367,6 @@ class State(Message):
             raise ValueError("indices and params must have the same length")
         if len(idx) and (int(idx[-1]) >= self.size or (np.diff(idx.astype(np.int64)) <= 0).any()):
             raise ValueError(f"indices must increase strictly and stay below size {self.size}")
-        return self
 
     @property
     def vector_size(self) -> int:

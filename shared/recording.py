@@ -146,31 +146,14 @@ def read_recording(path: Path | str, allow_incomplete: bool = False) -> Recordin
         raise RecordingError(path, f"cannot read: {exc.strerror}") from None
     if not data.startswith(MAGIC):
         raise RecordingError(path, "not a swarmmap LiDAR recording (bad magic; expected SWMREC01)")
-    header: dict[str, Any] | None = None
-    frames: list[tuple[float, bytes]] = []
-    footer: dict[str, Any] | None = None
-    digest = hashlib.sha256()
+    reader = _Frames(path)
     try:
         for doc in _frames(path, data):
-            kind = doc["kind"]
-            if header is None:
-                if kind != "header" or doc.get("v") != VERSION:
-                    raise RecordingError(path, f"first frame must be a version {VERSION} header, got {kind!r} v{doc.get('v')!r}")
-                if not isinstance(doc.get("robot"), int) or not isinstance(doc.get("config"), dict):
-                    raise RecordingError(path, "header lacks its robot id or config")
-                header = doc
-            elif footer is not None:
-                raise RecordingError(path, "frames after the footer")
-            elif kind == "samples" and isinstance(doc.get("payload"), bytes) and isinstance(doc.get("t"), float | int):
-                frames.append((float(doc["t"]), doc["payload"]))
-                digest.update(doc["payload"])
-            elif kind == "footer":
-                footer = doc
-            else:
-                raise RecordingError(path, f"frame {len(frames) + 1} has kind {kind!r} or lacks its fields")
+            reader.take(doc)
     except RecordingError as exc:
-        if not (allow_incomplete and exc.problem.startswith("truncated")) or header is None:
+        if not (allow_incomplete and exc.problem.startswith("truncated")) or reader.header is None:
             raise
+    header, frames, footer, digest = reader.header, reader.frames, reader.footer, reader.digest
     if header is None:
         raise RecordingError(path, "no header frame")
     if footer is None:
@@ -181,3 +164,32 @@ def read_recording(path: Path | str, allow_incomplete: bool = False) -> Recordin
         raise RecordingError(path, f"footer says {footer.get('frames')} frames and digest {str(footer.get('sha256'))[:12]}..., "
                                    f"the file holds {len(frames)} with digest {digest.hexdigest()[:12]}...")
     return Recording(path, header, frames, footer is not None)
+
+
+class _Frames:
+    """A recording's frames in order, checked one by one: a header, samples, a footer."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.header: dict[str, Any] | None = None
+        self.frames: list[tuple[float, bytes]] = []
+        self.footer: dict[str, Any] | None = None
+        self.digest = hashlib.sha256()
+
+    def take(self, doc: dict[str, Any]) -> None:
+        kind, path = doc["kind"], self.path
+        if self.header is None:
+            if kind != "header" or doc.get("v") != VERSION:
+                raise RecordingError(path, f"first frame must be a version {VERSION} header, got {kind!r} v{doc.get('v')!r}")
+            if not isinstance(doc.get("robot"), int) or not isinstance(doc.get("config"), dict):
+                raise RecordingError(path, "header lacks its robot id or config")
+            self.header = doc
+        elif self.footer is not None:
+            raise RecordingError(path, "frames after the footer")
+        elif kind == "samples" and isinstance(doc.get("payload"), bytes) and isinstance(doc.get("t"), float | int):
+            self.frames.append((float(doc["t"]), doc["payload"]))
+            self.digest.update(doc["payload"])
+        elif kind == "footer":
+            self.footer = doc
+        else:
+            raise RecordingError(path, f"frame {len(self.frames) + 1} has kind {kind!r} or lacks its fields")

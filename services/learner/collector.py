@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 
+from swarmmap.services.learner.errors import LearnerError
+from swarmmap.shared.config import LearnerSettings
 from swarmmap.shared.protocol import Samples
 
 log = logging.getLogger("learner")
@@ -38,6 +41,23 @@ class Collector:
             if msg.last:
                 self.done.set()
         self.first.set()
+
+    def wait(self, s: LearnerSettings, key: str, stop: threading.Event, who: str = "learner") -> tuple[np.ndarray, np.ndarray]:
+        """Wait for the end of the traversal (online: its first scan) and return the points so far
+        (online: of the newest ``window_scans`` scans); ``key`` names where they come from."""
+        ready = self.first if s.data == "online" else self.done
+        deadline = time.monotonic() + s.collect_timeout_s
+        while not ready.is_set() and not stop.is_set() and time.monotonic() < deadline:
+            ready.wait(0.1)  # a stop (Ctrl-C, the run's end) is heard at once
+        if not (ready.is_set() or stop.is_set()):
+            what = "no Samples" if s.data == "online" else "no Samples with last=true"
+            raise LearnerError(f"{who}: {what} on {key} within {s.collect_timeout_s:.0f} s", 3)
+        if stop.is_set():
+            raise InterruptedError
+        points, labels = self.arrays(s.window_scans if s.data == "online" else None)
+        if len(points) == 0:
+            raise LearnerError(f"{who}: the traversal ended without a single training point", 3)
+        return points, labels
 
     def arrays(self, last_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every point so far, or those of the ``last_scans`` most recent scans."""

@@ -66,6 +66,7 @@ from swarmmap.shared.models import pick_device, set_flat
 from swarmmap.shared.networks import build_network
 from swarmmap.shared.protocol import CHAINED_ENCODINGS, MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap, encode_state
 from swarmmap.shared.slots import ComputeSlots, slots_dir
+from swarmmap.shared.unseen import Coverage
 
 log = logging.getLogger("learner")
 MakeLink = Callable[[StateLayout], Link]
@@ -86,7 +87,7 @@ class RobotLearner:
         self.stats = ExchangeStats()
         self.wire: MemoryLink | None = None  # in process: its end of the hub, which counts the bytes
         self.codec: StateCodec | None = None
-        self.slots = self.compute_slots()
+        self.slots = compute_slots(cfg, robot)
         self.rounds: SubRounds | None = None
         self.t_start = 0.0
         self.start_round, self.start_state, self.resumed, self.doc = 0, None, False, None
@@ -94,17 +95,6 @@ class RobotLearner:
         self.checkpoints = (Checkpoints(cfg.run_dir / "checkpoints", robot, cfg.run_id, settings_fingerprint(cfg), s.data == "online")
                             if cfg.run_dir is not None and s.checkpoint_every else None)
 
-    def compute_slots(self) -> AbstractContextManager:
-        """Zenoh, one learner a process, by rounds: at most compute_slots of this host's learners
-        train at once (on a clock a learner never waits for its neighbours: it would keep its slot)."""
-        if self.s.compute_slots and self.s.transport == "zenoh" and not self.s.exchange_every_s:
-            try:
-                return ComputeSlots(slots_dir(self.cfg.run_id), self.s.compute_slots, home=self.robot)
-            except OSError as exc:
-                log.warning("robot %d: training without compute slots: %s", self.robot, exc)
-        return nullcontext()
-
-    # ------------------------------------------------------------------ 1. data and graph
     def prepare(self, world: WorldMap, stop: threading.Event) -> None:
         """Its training points (the traversal's, or a checkpoint's), the validation set and the graph."""
         self.world = world
@@ -120,32 +110,14 @@ class RobotLearner:
         if self.doc is not None:
             self.points, self.labels = self.checkpoints.points(self.doc)
             return
-        self.points, self.labels = self.collect(stop)
+        self.points, self.labels = self.collector.wait(self.s, self.bus.keys.samples(self.robot), stop, f"robot {self.robot}")
         log.info("robot %d: %d training points (%.1f%% occupied)", self.robot, len(self.points), 100 * self.labels.mean())
-
-    def collect(self, stop: threading.Event) -> tuple[np.ndarray, np.ndarray]:
-        """Wait for the end of the traversal (online: its first scan); its points."""
-        s, robot = self.s, self.robot
-        ready = self.collector.first if s.data == "online" else self.collector.done
-        deadline = time.monotonic() + s.collect_timeout_s
-        while not ready.is_set() and not stop.is_set() and time.monotonic() < deadline:
-            ready.wait(0.1)  # a stop (Ctrl-C, the run's end) is heard at once
-        if not (ready.is_set() or stop.is_set()):
-            what = "no Samples" if s.data == "online" else "no Samples with last=true"
-            raise LearnerError(f"robot {robot}: {what} on {self.bus.keys.samples(robot)} within {s.collect_timeout_s:.0f} s", 3)
-        if stop.is_set():
-            raise InterruptedError
-        points, labels = self.collector.arrays(s.window_scans if s.data == "online" else None)
-        if len(points) == 0:
-            raise LearnerError(f"robot {robot}: the traversal ended without a single training point", 3)
-        return points, labels
 
     def window(self) -> tuple[np.ndarray, np.ndarray]:
         """Online: the newest ``window_scans`` scans' points (DiNNO's sliding window)."""
         self.points, self.labels = self.collector.arrays(self.s.window_scans)
         return self.points, self.labels
 
-    # ------------------------------------------------------------------ 2. the parts
     def compose(self, make_link: MakeLink | None, resume: bool = True) -> Transport | None:
         """Build the node of ``learner.algorithm`` on this robot's points, its links over
         ``make_link(layout)`` (None: none) and its round schedule; ``resume`` it from its
@@ -157,7 +129,7 @@ class RobotLearner:
         if make_link is not None:
             compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank,
                                     list(inputs.layout.matrices))
-            transport = self.codec = self.links(make_link(inputs.layout), compressor, inputs.coverage)
+            transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
             if s.compression in CHAINED_ENCODINGS:
                 public = lambda: compressor.replica  # noqa: E731  (the consensus terms use what the neighbours hold)
@@ -175,23 +147,6 @@ class RobotLearner:
                                          f"{s.rho_init:g}, consensus {s.consensus}")
         return transport
 
-    def links(self, link: Link, compressor: Compressor, coverage) -> StateCodec:
-        """A node's links as its settings ask: faults injected where the run's ``faults`` say, States
-        encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``),
-        and on a dynamic disk graph limited to the neighbours within ``comm_radius_m``."""
-        s, robot = self.s, self.robot
-        if any_faults(self.cfg.faults):
-            link = FaultyTransport(link, robot, self.cfg.faults)
-        dynamic = self.cfg.graph().dynamic
-        if not s.share_coverage:
-            coverage = None
-        if coverage is not None and (coverage.cells + 7) // 8 > MAX_COVERAGE_BYTES:
-            log.warning("robot %d: coverage not shared: %d cells of %.2f m are more than a State may carry (%d bytes); "
-                        "raise learner.unseen_margin_m to share it", robot, coverage.cells, coverage.cell, MAX_COVERAGE_BYTES)
-            coverage = None
-        return StateCodec(link, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
-                          position=(lambda: self.collector.position) if dynamic else None, coverage=coverage)
-
     def resume(self) -> None:
         """From the checkpoint found by :meth:`prepare`, if any; else write round 0's."""
         if self.doc is None:
@@ -207,7 +162,6 @@ class RobotLearner:
     def save(self, c: int, theta: np.ndarray) -> None:
         self.checkpoints.save(c, theta, self.node.checkpoint(), self.counters(), self.points, self.labels)
 
-    # ------------------------------------------------------------------ 3. reports
     def counters(self) -> dict[str, float]:
         """This learner's counters, including those of the runs it resumed."""
         sent, received = self.wire.wire_bytes() if self.wire is not None else exchange_bytes(self.bus, self.robot)
@@ -239,29 +193,13 @@ class RobotLearner:
             log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, msg.val_bce, msg.consensus_error)
         return msg
 
-    # ------------------------------------------------------------------ 4. rounds
     def train(self, transport: Transport, stop: threading.Event) -> None:
         """Algorithm 1 (or the clock mode) for ``rounds`` rounds over ``transport``, then the final metrics and outputs."""
-        s, robot = self.s, self.robot
         self.t_start = time.monotonic()
-        start = self.node.state() if self.start_state is None else self.start_state
-        rules, screen = exchange_rules(s), StateScreen(self.node.layout, s.max_state_distance)
         try:
-            if s.exchange_every_s > 0:
-                final = ClockExchange(robot, self.neighbours, self.rounds.clock_update, transport, s.exchange_every_s, rules,
-                                      check=screen, forget=self.rounds.forget, stats=self.stats, stop=stop
-                                      ).run(start, s.rounds, self.start_round)
-            else:
-                machine = Algorithm1(robot, self.neighbours, self.rounds.exchange_update, transport, rules, check=screen,
-                                     rejoin=self.node.rejoin, stats=self.stats, stop=stop)
-                final = RoundLoop(machine).run(start, s.rounds // s.exchange_every, self.start_round, self.resumed)
+            final = exchange(self, transport, stop)
         except PeerFailure as exc:
             raise LearnerError(str(exc), 5) from None
-        codec = self.codec
-        if codec is not None and (self.stats.missed or codec.ignored or codec.unusable):
-            log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
-                     "from neighbours out of range ignored; %d State(s) that could not be rebuilt", robot,
-                     self.stats.missed, codec.ignored, codec.unusable)
         set_flat(self.node.model, torch.from_numpy(self.node.layout.params_of(final).copy()))
         self.final_state = final
         self.finish(final, self.stats.final_peers)
@@ -280,6 +218,57 @@ class RobotLearner:
                      robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))
         if self.cfg.run_dir is not None:
             write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
+
+
+def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event) -> np.ndarray:
+    """A learner's rounds over ``transport``: Algorithm 1, or on a clock (``exchange_every_s``); the final State."""
+    s, node, rounds = learner.s, learner.node, learner.rounds
+    start = node.state() if learner.start_state is None else learner.start_state
+    rules, screen = exchange_rules(s), StateScreen(node.layout, s.max_state_distance)
+    if s.exchange_every_s > 0:
+        final = ClockExchange(learner.robot, learner.neighbours, rounds.clock_update, transport, s.exchange_every_s, rules,
+                              check=screen, forget=rounds.forget, stats=learner.stats, stop=stop
+                              ).run(start, s.rounds, learner.start_round)
+    else:
+        machine = Algorithm1(learner.robot, learner.neighbours, rounds.exchange_update, transport, rules, check=screen,
+                             rejoin=node.rejoin, stats=learner.stats, stop=stop)
+        final = RoundLoop(machine).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
+    codec, stats = learner.codec, learner.stats
+    if codec is not None and (stats.missed or codec.ignored or codec.unusable):
+        log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
+                 "from neighbours out of range ignored; %d State(s) that could not be rebuilt", learner.robot,
+                 stats.missed, codec.ignored, codec.unusable)
+    return final
+
+
+def state_links(learner: RobotLearner, link: Link, compressor: Compressor, coverage: Coverage | None) -> StateCodec:
+    """A learner's links as its settings ask: faults injected where the run's ``faults`` say, States
+    encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``),
+    and on a dynamic disk graph limited to the neighbours within ``comm_radius_m``."""
+    s, robot, cfg = learner.s, learner.robot, learner.cfg
+    if any_faults(cfg.faults):
+        link = FaultyTransport(link, robot, cfg.faults)
+    dynamic = cfg.graph().dynamic
+    if not s.share_coverage:
+        coverage = None
+    if coverage is not None and (coverage.cells + 7) // 8 > MAX_COVERAGE_BYTES:
+        log.warning("robot %d: coverage not shared: %d cells of %.2f m are more than a State may carry (%d bytes); "
+                    "raise learner.unseen_margin_m to share it", robot, coverage.cells, coverage.cell, MAX_COVERAGE_BYTES)
+        coverage = None
+    return StateCodec(link, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
+                      position=(lambda: learner.collector.position) if dynamic else None, coverage=coverage)
+
+
+def compute_slots(cfg: RunConfig, robot: int) -> AbstractContextManager:
+    """Zenoh, one learner a process, by rounds: at most ``compute_slots`` of this host's learners
+    train at once (on a clock a learner never waits for its neighbours: it would keep its slot)."""
+    s = cfg.learner
+    if s.compute_slots and s.transport == "zenoh" and not s.exchange_every_s:
+        try:
+            return ComputeSlots(slots_dir(cfg.run_id), s.compute_slots, home=robot)
+        except OSError as exc:
+            log.warning("robot %d: training without compute slots: %s", robot, exc)
+    return nullcontext()
 
 
 def exchange_bytes(bus: Bus, robot: int) -> tuple[int, int]:

@@ -37,6 +37,14 @@ def test_dsgt_over_zenoh_on_a_graph_file(tmp_path):
     assert learners["1"]["bytes_received"] > 1.8 * learners["0"]["bytes_received"]
 
 
+@pytest.mark.parametrize("algorithm", ["dsgd", "dsgt"])
+def test_dsgd_and_dsgt_exchange_every_few_rounds(tmp_path, algorithm):
+    """Between exchanges a baseline takes local steps (no mixing): every learner finishes and learns."""
+    learners = up(tmp_path / algorithm, "--rounds", "20", "--transport", "inproc", "--set", f"learner.algorithm={algorithm}",
+                  "--set", "learner.exchange_every=2", "--set", "learner.lr_start=0.3", "--set", "learner.lr_finish=0.3")
+    assert all(v["finished"] and v["final_val_bce"] < v["first_val_bce"] for v in learners.values())
+
+
 def test_individual_and_disk_graph(tmp_path):
     alone = up(tmp_path / "i", "--set", "learner.algorithm=individual")
     rows = list(csv.DictReader((tmp_path / "i" / "metrics.csv").open()))

@@ -113,6 +113,31 @@ def test_dsgd_and_dsgt_learn(name):
     assert max(validation_bce(n.model, val_x, val_y) for n in dn) < before
 
 
+@pytest.mark.parametrize("name", ["dsgd", "dsgt"])
+def test_dsgd_and_dsgt_take_local_steps_between_exchanges(name):
+    """exchange_every 2: every other round mixes nothing. The local round moves the node's own
+    parameters by a gradient step (DSGT: along its tracker, which takes in the new gradient)."""
+    s = LearnerSettings(model_shape=[2, 32, 32, 1], batch_size=512, lr_start=0.3, lr_finish=0.3, rounds=40, algorithm=name,
+                        exchange_every=2)
+    graph = neighbour_sets("ring", 3)
+    dn = [node(s, i, i + 1, graph=graph, robot=i) for i in range(3)]
+    val_x, val_y = toy_data(9)
+    before = validation_bce(dn[0].model, val_x, val_y)
+    st = {i: dn[i].state().copy() for i in range(3)}
+    for k in range(40):
+        if k % 2:
+            st = {i: dn[i].local_update(k, st[i]).copy() for i in range(3)}
+        else:
+            st = {i: dn[i].update(k, st[i], {j: st[j] for j in graph[i]}).copy() for i in range(3)}
+    assert max(validation_bce(n.model, val_x, val_y) for n in dn) < before
+    own = st[0].copy()
+    moved = dn[0].local_update(40, own).copy()
+    n = dn[0].layout.param_count
+    assert not np.allclose(moved[:n], own[:n])
+    if name == "dsgt":  # theta <- theta - alpha y with the tracker of the State it started from
+        np.testing.assert_allclose(moved[:n], own[:n] - 0.3 * own[n:], rtol=1e-5, atol=1e-6)
+
+
 def test_dsgt_tracks_the_average_gradient():
     """Gradient tracking's invariant with doubly stochastic weights: mean_i y_i = mean_i g_i."""
     s = LearnerSettings(model_shape=[2, 8, 8, 1], batch_size=64, lr_start=0.1, lr_finish=0.1, rounds=5, algorithm="dsgt")
