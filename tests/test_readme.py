@@ -127,3 +127,8 @@ def test_every_figure_is_shown():
 def test_no_development_process_wording():
     found = [(p.name, w) for p in PAGES for w in PROCESS_WORDS if w in p.read_text().lower()]
     assert not found, found
+
+
+def test_every_page_is_in_the_index():
+    index = {target.partition("#")[0] for _, target in links(DOCS / "README.md")}
+    assert not [p.name for p in DOCS.glob("*.md") if p.name != "README.md" and p.name not in index], "pages docs/README.md does not list"
