@@ -41,14 +41,13 @@ from swarmmap.services.learner.exchange import (
 )
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.graphs import GraphError, dynamic_graph, metropolis_weights, run_graph
+from swarmmap.services.learner.outputs import write_outputs
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
-from swarmmap.shared.atomic import atomic_write_bytes, save_png
-from swarmmap.shared.bnn import predict_mean_std
+from swarmmap.shared.atomic import atomic_write_bytes
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import RunConfig, task_robot
-from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.models import StochasticNet, model_from_settings, pick_device, save_model, set_flat
+from swarmmap.shared.models import model_from_settings, pick_device, set_flat
 from swarmmap.shared.protocol import (
     CHAINED_ENCODINGS,
     MAX_COVERAGE_BYTES,
@@ -547,25 +546,3 @@ def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Even
         t.join()
     if errors:
         raise errors[0]
-
-
-def write_outputs(cfg: RunConfig, robot: int, model, world: WorldMap, points: np.ndarray, labels: np.ndarray) -> None:
-    """The model checkpoint, its mean map PNG (and for a BNN its std map PNG and both as .npz)
-    and the robot's training points, written atomically."""
-    run_dir = cfg.run_dir
-    buf = io.BytesIO()
-    np.savez_compressed(buf, points=points, labels=labels)
-    atomic_write_bytes(run_dir / "data" / f"robot-{robot}.npz", buf.getvalue())
-    save_model(model, run_dir / "models" / f"robot-{robot}.pt", robot=robot, rounds=cfg.learner.rounds,
-               run_id=cfg.run_id)
-    grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
-    pts, (h, w) = grid.centres(cfg.learner.map_resolution_m)
-    mean, std = predict_mean_std(model, pts, samples=cfg.learner.mc_samples)
-    save_png(run_dir / "maps" / f"robot-{robot}-mean.png", mean.reshape(h, w))
-    if isinstance(model, StochasticNet):
-        # Darker = more uncertain, on a fixed scale (std of a probability is at most 0.5).
-        save_png(run_dir / "maps" / f"robot-{robot}-std.png", np.clip(std.reshape(h, w) / 0.5, 0, 1))
-        buf = io.BytesIO()
-        np.savez_compressed(buf, mean=mean.reshape(h, w), std=std.reshape(h, w), origin=np.asarray(grid.origin),
-                            resolution=cfg.learner.map_resolution_m)
-        atomic_write_bytes(run_dir / "maps" / f"robot-{robot}.npz", buf.getvalue())
