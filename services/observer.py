@@ -30,7 +30,6 @@ import logging
 import threading
 import time
 
-import matplotlib
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -45,6 +44,7 @@ from swarmmap.shared.compression import Decompressor
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.floorplan import OccupancyGrid
 from swarmmap.shared.models import StochasticNet, has_std, model_from_settings, param_count, pick_device, set_flat
+from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, Tensor, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
@@ -56,13 +56,6 @@ ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 3
 
 def colour(robot: int) -> np.ndarray:
     return ROBOT_COLOURS[robot % len(ROBOT_COLOURS)]
-
-
-def colorize(values: np.ndarray, cmap: str, vmax: float) -> np.ndarray:
-    """(H, W) values in [0, vmax] (row 0 = south) -> (H, W, 3) uint8 RGB, north up."""
-    lut = (matplotlib.colormaps[cmap](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
-    idx = np.clip(np.nan_to_num(values / vmax) * 255, 0, 255).astype(np.uint8)
-    return lut[np.flipud(idx)]
 
 
 def blueprint(robots: int, bayesian: bool) -> rrb.Blueprint:
@@ -148,7 +141,7 @@ class Observer:
         model = model_from_settings(self.cfg.learner, world.bounds, self.cfg.seed).to(self.device)
         self.n_params = param_count(model)
         self.model = model
-        self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), "gray_r", 1.0)), static=True)
+        self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), OCCUPANCY_CMAP, 1.0)), static=True)
         s = self.cfg.learner
         positions = world.positions.numpy() if world.positions is not None else None
         try:
@@ -240,9 +233,9 @@ class Observer:
                                      dtype=self.map_dtype)
         h, w = self.shape
         self.rec.set_time("round", sequence=msg.round)
-        self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), "gray_r", 1.0)))
+        self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), OCCUPANCY_CMAP, 1.0)))
         if isinstance(self.model, StochasticNet):
-            self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), "magma", self.s.std_max)))
+            self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), STD_CMAP, self.s.std_max)))
         dt = time.perf_counter() - t0
         self.rec.log("observer/map_time_s", rr.Scalars(dt))
         return dt
