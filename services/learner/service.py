@@ -9,9 +9,10 @@ Run-book: ``swarmmap learner --robot I --config RUN_DIR/config.yaml``. Order of 
 4. work out its neighbours (``learner.graph``), subscribe to their State and RoundComplete
    keys, announce ``alive/exchange/<I>``, wait for its neighbours' exchange tokens, then run
    Algorithm 1 for ``rounds`` rounds with
-   DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds and at the end;
-5. write ``RUN_DIR/models/robot-<I>.pt``, ``RUN_DIR/maps/robot-<I>-mean.png`` and its training
-   points ``RUN_DIR/data/robot-<I>.npz``;
+   DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds;
+5. write ``RUN_DIR/models/robot-<I>.pt``, its maps ``RUN_DIR/maps/robot-<I>.*`` (arrays, PNGs,
+   a ROS map: :mod:`~swarmmap.services.learner.outputs`) and its training points
+   ``RUN_DIR/data/robot-<I>.npz``, then publish its final ``Metrics``;
 6. stay until the recorder says the run is over (``run/done``), then exit 0. The same message
    stops it at any point, e.g. when another learner failed.
 """
@@ -382,6 +383,8 @@ class RobotLearner:
     def finish(self, final: np.ndarray, peers: dict[int, np.ndarray]) -> None:
         """The final metrics and outputs."""
         s, robot = self.s, self.robot
+        if self.cfg.run_dir is not None:  # before the final Metrics: a run is over only once every map is on disk
+            write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
         m = self.publish_metrics(s.rounds, final, peers, final=True)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
@@ -391,8 +394,6 @@ class RobotLearner:
         if self.node.coverage is not None:
             log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
                      robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))
-        if self.cfg.run_dir is not None:
-            write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
