@@ -457,6 +457,13 @@ PRESETS: dict[str, dict[str, Any]] = {
                     "lr_start": 1e-3, "lr_finish": 1e-4, "rho_init": 0.03, "mc_samples": 50, "eval_every": 20},
     },
 }
+# The first try: the smoke run with a small Bayesian network, so that its maps have a std (about
+# a minute on two CPU cores); the noise-contrastive prior (learner.unseen_weight) makes the std
+# bright where no robot looked (around the building) and dark where they mapped.
+PRESETS["quickstart"] = {
+    **PRESETS["smoke"],
+    "learner": {**PRESETS["smoke"]["learner"], "model": "bnn", "unseen_weight": 0.05},
+}
 # DiNNO's setting (plan, sensor, data, network, Adam re-created each round, complete graph) with
 # the schedule that reaches DiNNO's published quality (mean val_bce 0.102) soonest here
 # (bench/time_to_quality.py; the README's "Performance"): rho 0.01 instead of 0.3 (less pull
