@@ -128,8 +128,9 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
     Mode ``raw``: the pixel is the occupancy in percent, and values above 100 are unknown. A
     transparent pixel is unknown, and so is a free pixel on the image's edge. Unknown cells are
     solid in the simulated world (robots do not drive there and the LiDAR stops at them) and
-    never ground truth: the validation set and the scores leave them out. Image row 0 is the map's top; ``origin`` is the pose of its lower-left
-    pixel (a rotated origin, yaw not 0, is refused)."""
+    never ground truth: the validation set and the scores leave them out. Image row 0 is the
+    map's top; ``origin`` is the pose of its lower-left pixel (a rotated origin, yaw not 0, is
+    refused)."""
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
