@@ -358,7 +358,8 @@ class UpSettings(Section):
 class RunConfig(Section):
     """The whole resolved configuration of one run (``RUN_DIR/config.yaml``)."""
 
-    preset: str | None = Field(None, description="named preset applied under the config file (smoke, demo, dinno, dinno-fast, paper)")
+    preset: str | None = Field(None, description="named preset applied under the config file (smoke, quickstart, demo, dinno, "
+                                                 "dinno-fast, paper)")
     run_id: str = Field("default", pattern=NAME_PATTERN, description="run id: every key lives under <key_prefix>/<run_id>")
     key_prefix: str = Field("swarmmap", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$", description="first chunks of every key expression")
     robots: int = Field(3, ge=1, le=64, description="number of robots (and lidar streamers and learners)")
