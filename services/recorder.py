@@ -183,6 +183,7 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
 def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
     """``overview.png`` of the maps the learners saved, ``notes`` under each robot's name (a
     figure that fails is logged, never the run's failure)."""
+    t0 = time.perf_counter()
     from swarmmap.shared.overview import write_overview
 
     try:
@@ -191,7 +192,7 @@ def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
         log.exception("could not draw %s", cfg.run_dir / "overview.png")
         return
     if path is not None:
-        log.info("overview of the maps: %s", path)
+        log.info("overview of the maps: %s (drawn in %.1f s)", path, time.perf_counter() - t0)
 
 
 def others_alive(bus: Bus) -> set[tuple[str, str]]:
