@@ -114,8 +114,9 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
     with_std = any("std" in m for m in maps.values())
     kinds = ["truth", "mean"] + (["std"] if with_std else []) + ["error"]
     h, w = maps[robots[0]]["mean"].shape
-    # A fixed layout (inches): constrained_layout would take most of the drawing time.
-    panel, gap_x, gap_y, left, bottom, bar = 3.2, 0.75, 0.75, 1.0, 0.8, 0.45
+    # A fixed layout (inches): constrained_layout would take most of the drawing time. Panels
+    # grow with the map (up to 8 in at 200 dpi) so that a cell gets at least a pixel.
+    panel, gap_x, gap_y, left, bottom, bar = float(np.clip(w / 200, 3.2, 8.0)), 0.75, 0.75, 1.0, 0.8, 0.45
     panel_h = panel * h / w
     width = left + len(kinds) * panel + (len(kinds) - 1) * gap_x + 0.3
     height = 0.5 + len(robots) * (panel_h + gap_y) + bar + bottom
