@@ -44,6 +44,8 @@ import yaml
 
 from swarmmap.shared.compression import COMPRESSIONS
 from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, STD_MODELS, ConfigError, RunConfig, apply_override, resolve
+from swarmmap.shared.overview import load_maps, map_extent, robot_files, show, truth_grid, truth_on
+from swarmmap.shared.overview import pyplot as _plt
 
 log = logging.getLogger("experiment")
 
@@ -72,36 +74,12 @@ def final_val_bce(run_dir: Path) -> dict[int, float]:
     return {r: rows[-1][1] for r, rows in read_metrics(run_dir).items()}
 
 
-def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
-    """A robot's saved mean and std maps (``maps/robot-<i>.npz``)."""
-    path = run_dir / "maps" / f"robot-{robot}.npz"
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no mean/std maps (only a bnn or dropout run saves them)")
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
-
-
 def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float]]:
     """Uncertainty scores of every robot's maps in a finished bnn run; observed cells are the
     ones within ``radius_m`` of any robot's training point."""
-    robots = list(robot_files(run_dir / "maps", ".npz"))
-    return dict(zip(robots, score_maps(run_dir, [load_maps(run_dir, r) for r in robots], radius_m)))
-
-
-def robot_files(folder: Path, suffix: str) -> dict[int, Path]:
-    """The ``robot-<i><suffix>`` files in ``folder``, by robot id in increasing order."""
-    found = {int(p.name[len("robot-") : -len(suffix)]): p for p in folder.glob(f"robot-*{suffix}")}
-    return dict(sorted(found.items()))
-
-
-def truth_grid(run_dir: Path):
-    """The run's ground-truth occupancy grid (``groundtruth.npz``: 0 free, 1 occupied, 2 unknown,
-    never scored)."""
-    from swarmmap.shared.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
-
-    with np.load(run_dir / "groundtruth.npz") as gt:
-        return OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]),
-                             unknown=gt["grid"] == 2)
+    maps = {r: load_maps(run_dir, r) for r in robot_files(run_dir / "maps", ".npz")}
+    maps = {r: m for r, m in maps.items() if "std" in m}  # (a FourierNet's maps have none)
+    return dict(zip(maps, score_maps(run_dir, list(maps.values()), radius_m)))
 
 
 def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float = 0.1) -> list[dict[str, float]]:
@@ -117,9 +95,7 @@ def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float
     for m in maps:
         res, shape, origin = float(m["resolution"]), m["mean"].shape, tuple(m["origin"])
         if (res, shape, origin) not in references:  # every robot's map shares its grid, normally
-            fine = grid.resample(res)
-            truth = fine.grid[: shape[0], : shape[1]] > 0
-            known = np.ones(shape, bool) if fine.unknown is None else ~fine.unknown[: shape[0], : shape[1]]
+            truth, known = truth_on(grid, m)
             references[res, shape, origin] = truth, observed_mask(shape, origin, res, points, radius_m), known
         truth, observed, known = references[res, shape, origin]
         scores.append(score_map(m["mean"][known], m["std"][known], truth[known], observed[known]))
@@ -134,8 +110,8 @@ def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str
     from swarmmap.shared.networks import load_model
 
     learner = resolve(config_file=run_dir / "config.yaml", environ={}).learner  # the maps' grid and passes
-    res = learner.map_resolution_m
     grid = truth_grid(run_dir)
+    res = learner.map_resolution_m or grid.resolution
     pts, (h, w) = grid.centres(res)
     paths = robot_files(run_dir / "models", ".pt")
     if not paths:
@@ -270,21 +246,6 @@ def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Pat
 # ----------------------------------------------------------------------------- figures
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def map_extent(maps: dict[str, np.ndarray]) -> tuple[float, float, float, float]:
-    h, w = maps["mean"].shape
-    res, (ox, oy) = float(maps["resolution"]), maps["origin"]
-    return (ox, ox + w * res, oy, oy + h * res)
-
-
 def maps_figure(columns: list[tuple[str, dict[str, np.ndarray]]], path: Path, std_max: float = 0.25) -> None:
     """A row of mean maps over a row of std maps, one column per (title, maps)."""
     plt = _plt()
@@ -292,9 +253,9 @@ def maps_figure(columns: list[tuple[str, dict[str, np.ndarray]]], path: Path, st
     fig, axes = plt.subplots(2, n, figsize=(3.2 * n + 0.8, 6.2), squeeze=False, constrained_layout=True)
     for j, (title, maps) in enumerate(columns):
         ext = map_extent(maps)
-        axes[0, j].imshow(maps["mean"], origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=ext)
+        show(axes[0, j], maps["mean"], ext, "occupancy")
         axes[0, j].set_title(title, fontsize=9)
-        im = axes[1, j].imshow(maps["std"], origin="lower", cmap="magma", vmin=0, vmax=std_max, extent=ext)
+        im = show(axes[1, j], maps["std"], ext, "std", std_max)
         for ax in axes[:, j]:
             ax.set_xticks([])
             ax.set_yticks([])
@@ -812,8 +773,8 @@ def score(args: argparse.Namespace) -> int:
         maps = ensemble_maps(args.run_dir)
         ensemble = (int(maps["members"]), score_maps(args.run_dir, [maps], args.radius)[0])
     if not per_robot and ensemble is None:
-        print(f"{args.run_dir}: no maps/robot-<i>.npz (only a bnn or dropout run saves std maps; --ensemble scores any run's "
-              f"models together)", file=sys.stderr)
+        print(f"{args.run_dir}: no std maps in maps/robot-<i>.npz (only a bnn or dropout run has them; --ensemble scores any "
+              f"run's models together)", file=sys.stderr)
         return 2
     vals = final_val_bce(args.run_dir)
     rows = [(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()]

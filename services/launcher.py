@@ -14,7 +14,8 @@ to ``summary.json``.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
-``models/robot-<id>.pt``, ``maps/robot-<id>-mean.png``, ``data/robot-<id>.npz`` (training
+``overview.png``, ``models/robot-<id>.pt``, ``maps/robot-<id>.*`` (the learned maps: arrays,
+PNGs, a ROS map), ``data/robot-<id>.npz`` (training
 points), ``logs/<service>-<id>.log``, ``recording.rrd`` and ``observer.json`` (the observer's
 Rerun recording and its time per map).
 """

@@ -31,7 +31,6 @@ import threading
 import time
 from dataclasses import dataclass
 
-import matplotlib
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -47,6 +46,7 @@ from swarmmap.shared.graphs import GraphError, run_graph
 from swarmmap.shared.layout import StateLayout
 from swarmmap.shared.models import StochasticNet, pick_device, set_flat
 from swarmmap.shared.networks import build_network, has_std
+from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
 
 log = logging.getLogger("swarmmap.observer")
@@ -58,13 +58,6 @@ ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 3
 
 def colour(robot: int) -> np.ndarray:
     return ROBOT_COLOURS[robot % len(ROBOT_COLOURS)]
-
-
-def colorize(values: np.ndarray, cmap: str, vmax: float) -> np.ndarray:
-    """(H, W) values in [0, vmax] (row 0 = south) -> (H, W, 3) uint8 RGB, north up."""
-    lut = (matplotlib.colormaps[cmap](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
-    idx = np.clip(np.nan_to_num(values / vmax) * 255, 0, 255).astype(np.uint8)
-    return lut[np.flipud(idx)]
 
 
 def blueprint(robots: int, bayesian: bool) -> rrb.Blueprint:
@@ -160,7 +153,7 @@ class Observer:
         model = build_network(self.cfg.network(), world.bounds, self.cfg.seed).to(self.device)
         self.layout = StateLayout.of(model, self.cfg.state_copies())  # DSGT's State carries its tracker too, RAMEN's its counts
         self.model = model
-        self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), "gray_r", 1.0)), static=True)
+        self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), OCCUPANCY_CMAP, 1.0)), static=True)
         positions = world.positions.numpy() if world.positions is not None else None
         try:
             self.graph = run_graph(self.cfg.graph(), self.cfg.robots, positions)
@@ -247,9 +240,9 @@ class Observer:
                                      dtype=self.map_dtype)
         h, w = self.shape
         self.rec.set_time("round", sequence=msg.round)
-        self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), "gray_r", 1.0)))
+        self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), OCCUPANCY_CMAP, 1.0)))
         if isinstance(self.model, StochasticNet):
-            self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), "magma", self.s.std_max)))
+            self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), STD_CMAP, self.s.std_max)))
         dt = time.perf_counter() - t0
         self.rec.log("observer/map_time_s", rr.Scalars(dt))
         return dt

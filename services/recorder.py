@@ -8,7 +8,8 @@ and the SLURM job scripts all start one, so every launcher leaves the same run d
 - ``config.yaml`` (the resolved config, when the launcher did not write it already),
   ``metrics.csv`` (every learner's ``Metrics`` as it arrives), ``groundtruth.png`` and
   ``groundtruth.npz`` (the world's map and validation set), ``summary.json`` (per learner:
-  first and final val_bce, rounds, bytes; the run's outcome and why).
+  first and final val_bce, rounds, bytes; the run's outcome and why), and at the end
+  ``overview.png`` (:mod:`swarmmap.shared.overview`: ground truth beside each robot's saved maps).
 
 It also decides when the run is over, and says so on ``run/done`` (``RunDone``), on which
 every other service exits: the run succeeded when every learner sent its final ``Metrics``;
@@ -179,6 +180,21 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "learners": learners}
 
 
+def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
+    """``overview.png`` of the maps the learners saved, ``notes`` under each robot's name (a
+    figure that fails is logged, never the run's failure)."""
+    t0 = time.perf_counter()
+    from swarmmap.shared.overview import write_overview
+
+    try:
+        path = write_overview(cfg.run_dir, cfg.std_max(), notes)
+    except Exception:
+        log.exception("could not draw %s", cfg.run_dir / "overview.png")
+        return
+    if path is not None:
+        log.info("overview of the maps: %s (drawn in %.1f s)", path, time.perf_counter() - t0)
+
+
 def others_alive(bus: Bus) -> set[tuple[str, str]]:
     return {(s, i) for s, i in bus.alive() if s not in BYSTANDERS}
 
@@ -232,9 +248,15 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         # Say it until every other service has left (a late subscriber still hears it), bounded.
         deadline = time.monotonic() + (0 if interrupted else s.linger_s)
         done.put(msg)
+        notes = {r: f"val_bce {m.val_bce:.4f}" for r, m in dict(metrics.final).items()}
+        drawing = threading.Thread(target=draw_overview, args=(cfg, notes), name="overview")
+        if not interrupted:  # the learners wrote their maps before their final Metrics
+            drawing.start()
         while time.monotonic() < deadline and others_alive(bus):
             time.sleep(0.5)
             done.put(msg)
+        if drawing.ident is not None:
+            drawing.join()
     metrics.close()
     log.info("summary: %s", run_dir / "summary.json")
     return 0 if ok else 1

@@ -25,8 +25,6 @@ from pathlib import Path
 import numpy as np
 import pybullet
 import shapely
-import yaml
-from PIL import Image
 from scipy import ndimage
 
 from swarmmap.services.robot import LIDAR_LINK, write_urdf
@@ -34,6 +32,7 @@ from swarmmap.shared.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
+from swarmmap.shared.mapfiles import save_ros_map, trinary_pixels
 from swarmmap.shared.paths import coverage, path_length, plan_paths, point_along
 from swarmmap.shared.plans import load_floorplan
 from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
@@ -90,19 +89,12 @@ def write_ros_map(plan: FloorPlan, grid: OccupancyGrid, folder: Path) -> None:
     map_saver writes them: 254 free, 0 occupied, 205 unknown). Unknown: the grid's own unknown
     cells and, for a plan with wall outlines, the occupied cells outside every wall (the space
     around the building, which no robot could map)."""
-    pixels = np.where(grid.grid > 0, 0, 254).astype(np.uint8)
     unknown = grid.unknown.copy() if grid.unknown is not None else np.zeros(grid.grid.shape, bool)
     if plan.raster is None:
         pts, shape = grid.centres()
         wall = shapely.contains_xy(plan.walls, pts[:, 0], pts[:, 1]).reshape(shape)
         unknown |= (grid.grid > 0) & ~ndimage.binary_dilation(wall, iterations=1)
-    pixels[unknown] = 205
-    img = io.BytesIO()
-    Image.fromarray(pixels[::-1]).save(img, format="PPM")  # image row 0 is the map's top
-    atomic_write_bytes(folder / "map.pgm", img.getvalue())
-    doc = {"image": "map.pgm", "resolution": float(grid.resolution), "origin": [float(grid.origin[0]), float(grid.origin[1]), 0.0],
-           "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
-    atomic_write_bytes(folder / "map.yaml", yaml.safe_dump(doc, sort_keys=False).encode())
+    save_ros_map(folder / "map.yaml", trinary_pixels(grid.grid > 0, unknown), grid.resolution, grid.origin)
 
 
 @dataclass

@@ -209,7 +209,8 @@ class LearnerSettings(Section):
     eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
     checkpoint_every: int = Field(50, ge=0, description="write RUN_DIR/checkpoints/robot-<i>.pt every this many rounds (0: never); "
                                                         "a learner started on a run directory with a checkpoint resumes from it")
-    map_resolution_m: float = Field(0.05, gt=0.005, description="cell size of the saved mean map (m)")
+    map_resolution_m: float | None = Field(None, gt=0.005, description="cell size of the saved maps (m); none: the "
+                                                                   "ground truth's (world.grid_resolution_m)")
     collect_timeout_s: float = Field(600.0, gt=0, description="give up waiting for the end of the traversal after this long")
     peer_timeout_s: float = Field(120.0, gt=0, description="fail when this node has had no neighbour (all left or silent) for this long")
     max_state_distance: float = Field(
@@ -359,7 +360,8 @@ class UpSettings(Section):
 class RunConfig(Section):
     """The whole resolved configuration of one run (``RUN_DIR/config.yaml``)."""
 
-    preset: str | None = Field(None, description="named preset applied under the config file (smoke, demo, dinno, dinno-fast, paper)")
+    preset: str | None = Field(None, description="named preset applied under the config file (smoke, quickstart, demo, dinno, "
+                                                 "dinno-fast, paper)")
     run_id: str = Field("default", pattern=NAME_PATTERN, description="run id: every key lives under <key_prefix>/<run_id>")
     key_prefix: str = Field("swarmmap", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$", description="first chunks of every key expression")
     robots: int = Field(3, ge=1, le=64, description="number of robots (and lidar streamers and learners)")
@@ -440,6 +442,10 @@ class RunConfig(Section):
         """How long a source of scans waits for their consumers before it starts anyway."""
         return self.world.wait_for_consumers_s
 
+    def std_max(self) -> float:
+        """The std that gets the top colour of the std colour map: in the viewer and in every picture of a map."""
+        return self.observer.std_max
+
     def leave_s(self) -> float:
         """How long, once the run is over, services take to leave (the router stays for them)."""
         return self.recorder.linger_s + 5.0
@@ -502,7 +508,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "lidar": {"samples_per_beam": 8},
         "learner": {"rounds": 60, "primal_iterations": 10, "batch_size": 1024,
                     "model_shape": [2, 128, 64, 64, 1], "lr_start": 1e-2, "lr_finish": 1e-3, "rho_init": 0.03,
-                    "eval_every": 5, "map_resolution_m": 0.1, "siren_scale": 8.0, "checkpoint_every": 5},
+                    "eval_every": 5, "siren_scale": 8.0, "checkpoint_every": 5},
     },
     # The default: 7 robots, about ten minutes on two CPU cores, maps that show the rooms.
     "demo": {
@@ -514,7 +520,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # maps form within the rounds that fit ten minutes here (DiNNO runs 4000 rounds).
         "learner": {"rounds": 800, "primal_iterations": 5, "batch_size": 2048,
                     "model_shape": [2, 256, 64, 64, 64, 1], "lr_start": 3e-3, "lr_finish": 3e-4,
-                    "rho_init": 0.03, "eval_every": 20, "map_resolution_m": 0.05},
+                    "rho_init": 0.03, "eval_every": 20},
     },
     # DiNNO's published mapping setting (experiments/dist_online_dense_PAPER.yaml) for its
     # floor plan: run with --floorplan .../dinno-floorplan-32/floor_img.png --waypoints
@@ -533,7 +539,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "learner": {"model": "fourier", "rounds": 4000, "primal_iterations": 5, "batch_size": 12500,
                     "model_shape": [2, 256, 64, 64, 64, 1], "optimizer": "adam", "lr_start": 1e-3, "lr_finish": 1e-4,
                     "lr_schedule": "log", "rho_init": 0.3, "rho_growth": 1.0004, "optimizer_per_round": True,
-                    "graph": "complete", "eval_every": 20, "map_resolution_m": 0.05},
+                    "graph": "complete", "eval_every": 20},
     },
     # The paper's Section 5 network and Algorithm 2 with seven agents: SIREN (256) -> 4 x Bayesian
     # linear (256, ReLU) -> linear (1, sigmoid), separate-kl regularisation, 50 passes a map
@@ -547,6 +553,13 @@ PRESETS: dict[str, dict[str, Any]] = {
                     "kl_weight": 5e-3, "rounds": 2000, "primal_iterations": 5, "batch_size": 4096,
                     "lr_start": 1e-3, "lr_finish": 1e-4, "rho_init": 0.03, "mc_samples": 50, "eval_every": 20},
     },
+}
+# The first try: the smoke run with a small Bayesian network, so that its maps have a std (about
+# a minute on two CPU cores); the noise-contrastive prior (learner.unseen_weight) makes the std
+# bright where no robot looked (around the building) and dark where they mapped.
+PRESETS["quickstart"] = {
+    **PRESETS["smoke"],
+    "learner": {**PRESETS["smoke"]["learner"], "model": "bnn", "unseen_weight": 0.05},
 }
 # DiNNO's setting (plan, sensor, data, network, Adam re-created each round, complete graph) with
 # the schedule that reaches DiNNO's published quality (mean val_bce 0.102) soonest here

@@ -126,10 +126,11 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
     ``negate``); above ``occupied_thresh`` the cell is occupied, below ``free_thresh`` free, and in
     between unknown (``scale`` would make those cells probabilities; a ground truth has none).
     Mode ``raw``: the pixel is the occupancy in percent, and values above 100 are unknown. A
-    transparent pixel is unknown. Unknown cells are solid in the simulated world (robots do not
-    drive there and the LiDAR stops at them) and never ground truth: the validation set and the
-    scores leave them out. Image row 0 is the map's top; ``origin`` is the pose of its lower-left
-    pixel (a rotated origin, yaw not 0, is refused)."""
+    transparent pixel is unknown, and so is a free pixel on the image's edge. Unknown cells are
+    solid in the simulated world (robots do not drive there and the LiDAR stops at them) and
+    never ground truth: the validation set and the scores leave them out. Image row 0 is the
+    map's top; ``origin`` is the pose of its lower-left pixel (a rotated origin, yaw not 0, is
+    refused)."""
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
@@ -174,18 +175,7 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
             pixels = np.asarray(img.convert("L")).astype(np.float64)
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise PlanError(image_path, f"not a readable map image: {exc}") from None
-    if mode == "raw":
-        unknown = pixels > 100
-        occ = pixels / 100.0
-    else:
-        occ = pixels / 255.0 if negate else (255.0 - pixels) / 255.0
-        unknown = np.zeros(pixels.shape, dtype=bool)
-    occupied = ~unknown & (occ > occ_t)
-    free = ~unknown & (occ < free_t)
-    unknown = ~(occupied | free)
-    if alpha is not None:
-        unknown |= alpha == 0
-        free &= alpha != 0
+    free, unknown = ros_cells(pixels, alpha, mode, bool(negate), occ_t, free_t)
     if not free.any():
         raise PlanError(path, f"the map has no free cell (occupancy below free_thresh {free_t}); check negate and the thresholds")
     ny, nx = free.shape
@@ -194,6 +184,29 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
     coarse = native.resample(max(mesh_resolution, res))
     return FloorPlan(path.name, str(path), grid_walls(coarse), [box(*coarse.bounds)], ["free space"], raster=native,
                      kind="rosmap", image_size=(nx, ny))
+
+
+def ros_cells(pixels: np.ndarray, alpha: np.ndarray | None, mode: str, negate: bool, occ_t: float,
+              free_t: float) -> tuple[np.ndarray, np.ndarray]:
+    """(free, unknown) cells of a map_server image, row 0 = the image's top. The image's edge is
+    never free: beyond it the world has no walls, so a free cell there (a learned map's, whose
+    network guessed free space around the building) is taken as unknown, which keeps robots and
+    LiDAR beams on the map."""
+    if mode == "raw":
+        unknown = pixels > 100
+        occ = pixels / 100.0
+    else:
+        occ = pixels / 255.0 if negate else (255.0 - pixels) / 255.0
+        unknown = np.zeros(pixels.shape, dtype=bool)
+    occupied = ~unknown & (occ > occ_t)
+    free = ~unknown & (occ < free_t)
+    if alpha is not None:  # a transparent pixel is unknown, whatever its value
+        free &= alpha != 0
+        occupied &= alpha != 0
+    edge = np.zeros(free.shape, bool)
+    edge[[0, -1], :] = edge[:, [0, -1]] = True
+    free &= ~edge
+    return free, ~(occupied | free)
 
 
 def grid_walls(grid: OccupancyGrid):

@@ -9,10 +9,11 @@ Run-book: ``swarmmap learner --robot I --config RUN_DIR/config.yaml``. Order of 
    resume from its checkpoint;
 4. work out its neighbours (``learner.graph``), subscribe to their State and RoundComplete
    keys, announce ``alive/exchange/<I>``, wait for its neighbours' exchange tokens, then run
-   Algorithm 1 for ``rounds`` rounds with DiNNO's node update, publishing ``Metrics`` every
-   ``eval_every`` rounds and at the end;
-5. write ``RUN_DIR/models/robot-<I>.pt``, its maps and its training points
-   (:mod:`~swarmmap.services.learner.outputs`);
+   Algorithm 1 for ``rounds`` rounds with
+   DiNNO's node update, publishing ``Metrics`` every ``eval_every`` rounds;
+5. write ``RUN_DIR/models/robot-<I>.pt``, its maps ``RUN_DIR/maps/robot-<I>.*`` (arrays, PNGs,
+   a ROS map: :mod:`~swarmmap.services.learner.outputs`) and its training points
+   ``RUN_DIR/data/robot-<I>.npz``, then publish its final ``Metrics``;
 6. stay until the recorder says the run is over (``run/done``), then exit 0. The same message
    stops it at any point, e.g. when another learner failed.
 
@@ -167,30 +168,33 @@ class RobotLearner:
         sent, received = self.wire.wire_bytes() if self.wire is not None else exchange_bytes(self.bus, self.robot)
         wall = time.monotonic() - self.t_start if self.t_start else 0.0
         compute = self.rounds.compute_s if self.rounds is not None else 0.0
+        # refused: malformed or foreign messages (its bus, its in-memory link), implausible or far-future States, late Samples
+        refused = (sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused
+                   + (sum(self.wire.refused.values()) if self.wire is not None else 0))
         now = {"bytes_sent": sent, "bytes_received": received, "compute_s": compute, "wait_s": self.stats.wait_s,
-               "send_s": self.stats.send_s, "refused": self.refused(), "wall_time_s": wall}
+               "send_s": self.stats.send_s, "refused": refused, "wall_time_s": wall}
         return {k: v + self.before.get(k, 0) for k, v in now.items()}
 
-    def refused(self) -> int:
-        """Messages this learner refused: malformed or foreign ones (its bus), implausible or
-        far-future States, Samples after the last."""
-        wire = sum(self.wire.refused.values()) if self.wire is not None else 0
-        return sum(self.bus.dropped.values()) + sum(self.stats.refused.values()) + self.collector.refused + wire
+    def report(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> None:
+        """Round ``k``'s Metrics, published."""
+        msg = self.publish(self.metrics(k, theta, peers), theta)
+        log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, msg.val_bce, msg.consensus_error)
 
-    def report(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
-        """Publish round ``k``'s Metrics (and, in process, its State)."""
+    def metrics(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], final: bool = False) -> Metrics:
+        """Round ``k``'s Metrics: the validation loss, the consensus error against ``peers``, the counters."""
         c, params_of = self.counters(), self.node.layout.params_of
-        msg = Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=c["wall_time_s"],
-                      val_bce=validation_bce(self.node.model, self.val_x, self.val_y),
-                      consensus_error=consensus_error(params_of(theta), {j: params_of(p) for j, p in peers.items()}),
-                      bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
-                      compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
-                      n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final)
+        return Metrics(run=self.cfg.run_id, sender=self.robot, round=k, wall_time_s=c["wall_time_s"],
+                       val_bce=validation_bce(self.node.model, self.val_x, self.val_y),
+                       consensus_error=consensus_error(params_of(theta), {j: params_of(p) for j, p in peers.items()}),
+                       bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
+                       compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
+                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final)
+
+    def publish(self, msg: Metrics, theta: np.ndarray) -> Metrics:
+        """Publish ``msg`` (and, in process, the State it was taken of, for the observer)."""
         self.metrics_pub.put(msg)
         if self.state_pub is not None:
-            self.state_pub.put_bytes(encode_state(self.cfg.run_id, self.robot, k, theta))
-        if not final:
-            log.info("robot %d round %d: val_bce %.4f consensus %.4f", self.robot, k, msg.val_bce, msg.consensus_error)
+            self.state_pub.put_bytes(encode_state(self.cfg.run_id, self.robot, msg.round, theta))
         return msg
 
     def train(self, transport: Transport, stop: threading.Event) -> None:
@@ -207,7 +211,10 @@ class RobotLearner:
     def finish(self, final: np.ndarray, peers: dict[int, np.ndarray]) -> None:
         """The final metrics and outputs."""
         s, robot = self.s, self.robot
-        m = self.report(s.rounds, final, peers, final=True)
+        msg = self.metrics(s.rounds, final, peers, final=True)  # (its times are the training's)
+        if self.cfg.run_dir is not None:  # before the final Metrics: a run is over only once every map is on disk
+            write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
+        m = self.publish(msg, final)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
         if isinstance(self.slots, ComputeSlots):
@@ -216,8 +223,6 @@ class RobotLearner:
         if self.node.coverage is not None:
             log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
                      robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))
-        if self.cfg.run_dir is not None:
-            write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
 
 
 def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event) -> np.ndarray:

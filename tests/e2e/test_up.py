@@ -80,6 +80,16 @@ def test_run_directory_is_complete_and_maps_show_the_plan(smoke_run):
         assert observed_agreement(run_dir, robot) > 0.8
 
 
+def test_a_smoke_run_leaves_an_overview_and_ros_maps_at_the_ground_truths_resolution(smoke_run):
+    run_dir, _ = smoke_run
+    assert Image.open(run_dir / "overview.png").format == "PNG"
+    truth = np.load(run_dir / "groundtruth.npz")["grid"]
+    for robot in range(3):
+        assert np.load(run_dir / "maps" / f"robot-{robot}.npz")["mean"].shape == truth.shape
+        ros = yaml.safe_load((run_dir / "maps" / f"robot-{robot}.yaml").read_text())
+        assert Image.open(run_dir / "maps" / ros["image"]).size == truth.shape[::-1]
+
+
 def metric_rows(run_dir: Path) -> list[dict]:
     """The complete rows of metrics.csv (the file may be mid-write while the run goes on)."""
     path = run_dir / "metrics.csv"

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import csv
 
-from swarmmap.services.recorder import MetricsRecorder, RunTracker
+from swarmmap.services.recorder import MetricsRecorder, RunTracker, draw_overview
+from swarmmap.shared.config import RunConfig
 from swarmmap.shared.protocol import Metrics
 
 
@@ -90,3 +91,12 @@ def test_metrics_file_is_appended_on_resume(tmp_path):
     rows = list(csv.DictReader(path.open()))
     assert [(r["round"], r["final"]) for r in rows] == [("0", "0"), ("5", "1")]
     assert rec.first[0].round == 5 and rec.final[0].round == 5
+
+
+def test_an_overview_that_cannot_be_drawn_is_logged_and_never_fails_the_run(tmp_path, caplog):
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "groundtruth.npz").write_bytes(b"not an npz")
+    (tmp_path / "maps" / "robot-0.npz").write_bytes(b"nor this")
+    draw_overview(RunConfig(run_dir=tmp_path), {})
+    assert "could not draw" in caplog.text and str(tmp_path / "overview.png") in caplog.text
+    assert not (tmp_path / "overview.png").exists()
