@@ -29,7 +29,7 @@ from swarmmap.shared.runtime import setup_logging, shutdown_event
 SUMMARY = ("swarmmap: decentralised multi-robot mapping with uncertainty (DiNNO and Bayesian networks) "
            "as services on Zenoh.")
 EXAMPLES = """examples:
-  swarmmap up --preset smoke                  a first run: 3 robots, about a minute
+  swarmmap up --preset smoke                  a first run: 3 robots, 60 rounds
   swarmmap up                                 the demo: 7 robots, 800 rounds
   swarmmap up --model bnn --robots 5 --rounds 300
   swarmmap up --floorplan plan/model.svg      a CubiCasa5K plan (or a DiNNO .png, a ROS map .yaml)

@@ -214,6 +214,7 @@ class Launcher:
         return next((c for c in self.children if c.proc.poll() not in (None, 0)), None)
 
     def wait_alive(self, bus: Bus, service: str, idents: set[str]) -> None:
+        """Wait until ``service`` ``idents`` are alive; raises RuntimeError when one exited or none came in time."""
         deadline = time.monotonic() + self.cfg.up.start_timeout_s
         while not self.stop.is_set():
             missing = idents - {i for _, i in bus.alive(service)}
@@ -263,7 +264,7 @@ class Launcher:
 
     def run(self) -> int:
         """Check the run, then start every service and watch them until the run is over; returns
-        0 (every learner finished), 1 (it failed), 2 (a service refused its settings), 130 (interrupted)."""
+        0 (every learner finished), 1 (it failed, also when a service refused its settings), 130 (interrupted)."""
         cfg = self.cfg
         facts = check_run(cfg, endpoints=False, observer=cfg.up.observer)  # raises before anything exists
         self.traversal.expected = facts.expected_scans
@@ -280,11 +281,11 @@ class Launcher:
                 bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add)
                 recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
-            if status not in (130, REFUSED):  # the run is over: the services leave by themselves (run/done)
+            if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves (run/done)
                 self.let_leave()
         except RuntimeError as exc:
             log.error("%s", exc)
-            status = REFUSED if self.failure_code == REFUSED else 1
+            status = 1
         finally:
             self.shutdown()
             if cfg.learner.compute_slots:
@@ -373,7 +374,7 @@ class Launcher:
                 self.failure, self.failure_code = failure_reason(refused), REFUSED
                 log.error("%s; ending the run now (a refusal would only repeat). Its log (%s) ends:\n%s",
                           self.failure, refused.log_path, tail(refused.log_path))
-                return REFUSED
+                return 1
             if failed_at is None and (bad := self.failed()) is not None:
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
@@ -443,16 +444,29 @@ def tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
-LOG_PREFIX = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ [A-Z]+ [\w.-]+: ")  # setup_logging's time, level, service
+LOG_PREFIX = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ ([A-Z]+) [\w.-]+: ")  # setup_logging's time, level, service
+
+
+def last_error(lines: list[str]) -> str:
+    """The last error a service said in ``lines`` of its log: its last ERROR record (with the
+    lines it spans) or ``config error`` block, else the last line of a traceback, else its last lines."""
+    starts = [i for i, line in enumerate(lines) if (m := LOG_PREFIX.match(line)) and m.group(1) in ("ERROR", "CRITICAL")
+              or line.startswith("config error")]
+    if starts:
+        end = next((j for j in range(starts[-1] + 1, len(lines)) if LOG_PREFIX.match(lines[j])), len(lines))
+        block = lines[starts[-1] : min(end, starts[-1] + 8)]
+    elif any(line.startswith("Traceback") for line in lines):
+        block = [next(line for line in reversed(lines) if line.strip())]
+    else:
+        block = lines[-3:]
+    return " ".join(LOG_PREFIX.sub("", line).strip() for line in block if line.strip())
 
 
 def failure_reason(child: Child) -> str:
     """Why ``child`` ended: its exit status and its log's last error (what it said, without the
     log's time stamps), for summary.json."""
-    lines = [LOG_PREFIX.sub("", line).strip() for line in tail(child.log_path, 40).splitlines()]
-    lines = [line for line in lines if line and not line.startswith("pybullet build time")]
-    errors = [i for i, line in enumerate(lines) if re.search(r"error|refus|Traceback", line, re.IGNORECASE)]
-    said = " ".join(lines[errors[-1] if errors else max(0, len(lines) - 3):])[:600] or "(its log is empty)"
+    lines = [line for line in tail(child.log_path, 60).splitlines() if not line.startswith("pybullet build time")]
+    said = last_error(lines)[:600] or "(its log is empty)"
     verb = "refused to run" if child.proc.returncode == REFUSED else "failed"
     return f"{child.name} {verb} (exit status {child.proc.returncode}): {said}"
 
@@ -473,11 +487,10 @@ def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
 def other_run_in(cfg: RunConfig) -> str | None:
     """Why ``cfg.run_dir`` cannot take this run: it holds one with other settings (its
     checkpoints would be refused and its outputs overwritten); None when it can."""
-    from swarmmap.services.learner.service import settings_fingerprint
-
     path = cfg.run_dir / "config.yaml"
     if not path.exists():
         return None
+    from swarmmap.services.learner.service import settings_fingerprint  # here: torch only when there is a run to compare
     try:
         old = validate_config(yaml.safe_load(path.read_text()) or {})
     except ConfigError as exc:

@@ -223,7 +223,18 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "learners": learners}
 
 
+def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
+    """Log how the run ended (the verdict, the team's last progress line, the closing line) and
+    write ``summary.json``."""
+    (log.info if doc["ok"] else log.error)("run %s: %s", "succeeded" if doc["ok"] else "FAILED", doc["reason"])
+    if phases.team.started:
+        log.info("%s", phases.team.line())
+    log.info("%s", closing_line(doc))
+    atomic_write_text(run_dir / "summary.json", json.dumps(doc, indent=2) + "\n")
+
+
 def others_alive(bus: Bus) -> set[tuple[str, str]]:
+    """The run's services still alive, bystanders left out."""
     return {(s, i) for s, i in bus.alive() if s not in BYSTANDERS}
 
 
@@ -274,13 +285,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         if interrupted:
             outcome = False, f"the recorder was stopped before the run was over (finished: {sorted(tracker.finished)})"
         ok, reason = outcome
-        (log.info if ok else log.error)("run %s: %s", "succeeded" if ok else "FAILED", reason)
         msg = RunDone(run=cfg.run_id, sender=0, ok=ok, reason=reason, finished=sorted(tracker.finished))
-        if phases.team.started:
-            log.info("%s", phases.team.line())
-        doc = summary(cfg, metrics, ok, reason, time.monotonic() - t0, started)
-        log.info("%s", closing_line(doc))
-        atomic_write_text(run_dir / "summary.json", json.dumps(doc, indent=2) + "\n")
+        write_summary(run_dir, summary(cfg, metrics, ok, reason, time.monotonic() - t0, started), phases)
         # Say it until every other service has left (a late subscriber still hears it), bounded.
         deadline = time.monotonic() + (0 if interrupted else s.linger_s)
         done.put(msg)

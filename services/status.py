@@ -169,6 +169,7 @@ def probe(cfg: RunConfig, window: float, run_dir: Path | None, stop: threading.E
     print(f"run {cfg.run_id}: no summary yet; asking its services over Zenoh ({window:g} s)...", file=sys.stderr, flush=True)
 
     def work() -> None:
+        """Collect the snapshot, or the reason there is none."""
         try:
             result["snap"] = collect(cfg, window, stop)
         except ConfigError:  # Bus.open: no session within PROBE_CONNECT_S (a run whose router is gone), or refused settings

@@ -39,9 +39,11 @@ class Progress:
         self.thread.start()
 
     def start(self, label: str, run_dir: Path) -> None:
+        """A run of the experiment begins in ``run_dir``."""
         self.label, self.run_dir, self.run_t0 = label, run_dir, time.monotonic()
 
     def line(self) -> str | None:
+        """The progress line from the current run's metrics.csv, or None before it has any."""
         if self.run_dir is None or not (self.run_dir / "metrics.csv").exists():
             return None
         try:
@@ -64,9 +66,11 @@ class Progress:
                 print(text, flush=True)
 
     def finished(self) -> None:
+        """The current run is done (or was reused)."""
         self.done_runs += 1
 
     def close(self) -> None:
+        """Stop printing."""
         self.stop.set()
 
 
@@ -148,6 +152,7 @@ def _plt():
 
 
 def map_extent(maps: dict[str, np.ndarray]) -> tuple[float, float, float, float]:
+    """(left, right, bottom, top) of a map in metres, for imshow."""
     h, w = maps["mean"].shape
     res, (ox, oy) = float(maps["resolution"]), maps["origin"]
     return (ox, ox + w * res, oy, oy + h * res)
@@ -218,6 +223,7 @@ def json_ready(x):
 
 
 def write_csv(path: Path, header: list[str], rows: list[list]) -> None:
+    """``rows`` under ``header`` as a CSV file."""
     with path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
@@ -225,6 +231,7 @@ def write_csv(path: Path, header: list[str], rows: list[list]) -> None:
 
 
 def fmt(x: float, digits: int = 4) -> str:
+    """A number for a report; n/a for None or NaN."""
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
 
 
@@ -262,6 +269,7 @@ def prior_text(cfg: RunConfig) -> str:
 
 
 def base_config(args: argparse.Namespace) -> RunConfig:
+    """The experiment's config before its grid: the preset, a BNN, the transport, its --set items."""
     overrides: dict = {"learner": {"model": "bnn", "transport": args.transport}, "up": {"observer": args.observer},
                        "log_level": "warning"}
     rounds = args.rounds or EXPERIMENT_ROUNDS.get((args.preset, args.experiment))

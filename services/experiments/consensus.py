@@ -153,6 +153,7 @@ def consensus_figures(cells, curves, byte_curves, out: Path) -> None:
 
 
 def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list[str]:
+    """report.md's lines: the setting, the table per cell, sigma against the others, compression, scores."""
     seeds = args.seeds
 
     def mean(cell):

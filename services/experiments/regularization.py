@@ -61,6 +61,7 @@ def widths(shape: tuple[int, ...]) -> str:
 
 
 def cell_label(cell: RegCell) -> str:
+    """A cell of the grid in words, for figures and reports."""
     shape, ratio, kl = cell
     return f"model {widths(shape)}, W_rho/W_mu {ratio:g}, kl_weight {kl:g}"
 
@@ -175,6 +176,7 @@ def regularization_figure(cells: list[RegCell], strategies, result, path: Path) 
 
 
 def regularization_report(args, base: RunConfig, cells: list[RegCell], strategies, result, best) -> list[str]:
+    """report.md's lines: the setting, the table of final losses, the verdicts, the scores, the best run."""
     seeds = args.seeds
     lines = [f"# Regularisation strategies (the paper's Figures 7 and 8): preset {base.preset}", "",
              f"{base.robots} agents, DiNNO over a {base.learner.graph} graph, {base.learner.rounds} rounds, "

@@ -108,12 +108,14 @@ def ensemble_maps(run_dir: Path) -> dict[str, np.ndarray]:
 
 
 def scores_table(rows: list[tuple[str, dict[str, float]]]) -> list[str]:
+    """A Markdown table of (name, scores) rows."""
     lines = ["| run | " + " | ".join(SCORE_KEYS) + " |", "| --- |" + " --- |" * len(SCORE_KEYS)]
     lines += [f"| {name} | " + " | ".join(fmt(s[k]) for k in SCORE_KEYS) + " |" for name, s in rows]
     return lines
 
 
 def mean_scores(per_robot: dict[int, dict[str, float]]) -> dict[str, float]:
+    """Each score's mean over the robots (NaNs left out)."""
     return {k: float(np.nanmean([s[k] for s in per_robot.values()])) for k in SCORE_KEYS}
 
 

@@ -74,7 +74,7 @@ def test_a_service_that_refuses_its_settings_ends_the_run_at_once_with_its_reaso
         start = time.monotonic()
         status = launcher.watch(recorder)
         took = time.monotonic() - start
-        assert status == 2 and took < 10, f"watch returned {status} after {took:.1f} s"
+        assert status == 1 and took < 10, f"watch returned {status} after {took:.1f} s"
         launcher.shutdown()
         launcher.complete_summary(took, status)
     finally:
@@ -83,6 +83,19 @@ def test_a_service_that_refuses_its_settings_ends_the_run_at_once_with_its_reaso
                 c.proc.kill()
                 c.proc.wait()
     summary = json.loads((launcher.run_dir / "summary.json").read_text())
-    assert not summary["ok"] and summary["status"] == 2
+    assert not summary["ok"] and summary["status"] == 1
     assert summary["reason"] == "world-0 refused to run (exit status 2): floor plan refused: plan.svg: file does not exist"
     assert summary["services"]["world-0"]["exit_code"] == 2 and summary["services"]["world-0"]["restarts"] == 0
+
+
+def test_the_reason_is_the_services_last_error_without_time_stamps():
+    from swarmmap.services.launcher import last_error
+
+    record = ["2030-01-01 10:00:00,000 INFO learner: robot 1: 900 points",
+              "2030-01-01 10:00:01,000 ERROR learner: robot 1: cannot read checkpoint c/robot-1.pt: load failed.",
+              "Details on a second line", "2030-01-01 10:00:02,000 INFO learner: stopped"]
+    assert last_error(record) == "robot 1: cannot read checkpoint c/robot-1.pt: load failed. Details on a second line"
+    refused = ["config error:", "  zenoh.secrets: learner-0 has no credentials in s", "  create them with swarmmap secrets"]
+    assert last_error(refused) == "config error: zenoh.secrets: learner-0 has no credentials in s create them with swarmmap secrets"
+    crash = ["Traceback (most recent call last):", '  File "x.py", line 1, in <module>', "ValueError: bad value", ""]
+    assert last_error(crash) == "ValueError: bad value"

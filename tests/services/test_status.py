@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from tests.conftest import SWARMMAP, clean_env, free_port, recorded_run, wait_until
+from tests.conftest import PROMPT_S, SWARMMAP, clean_env, free_port, recorded_run, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -24,7 +24,7 @@ def status(*args: str) -> tuple[subprocess.CompletedProcess, float]:
 def test_a_finished_run_is_answered_from_its_summary_at_once(tmp_path):
     run_dir = recorded_run(tmp_path / "run", losses=(0.125, 0.250))
     proc, took = status(str(run_dir))
-    assert proc.returncode == 0 and took < 10
+    assert proc.returncode == 0 and took < PROMPT_S
     lines = proc.stdout.splitlines()
     assert lines[0].startswith("run demo-1: not running; finished ok at ") and "(all 2 learners finished)" in lines[0]
     assert lines[1:] == ["  learner   0  rounds    60  final val_bce 0.1250", "  learner   1  rounds    60  final val_bce 0.2500"]
@@ -36,7 +36,7 @@ def test_a_finished_run_is_answered_from_its_summary_at_once(tmp_path):
 
 def test_a_missing_run_is_answered_at_once(tmp_path):
     proc, took = status(str(tmp_path / "nothing"))
-    assert proc.returncode == 1 and took < 10 and "holds no run" in proc.stdout
+    assert proc.returncode == 1 and took < PROMPT_S and "holds no run" in proc.stdout
 
 
 def stopped_run(tmp_path):
@@ -51,7 +51,7 @@ def stopped_run(tmp_path):
 
 def test_a_run_that_stopped_without_a_summary_is_answered_within_seconds(tmp_path):
     proc, took = status(str(stopped_run(tmp_path)), "--window", "0.5")
-    assert took < 20 and "not running" in proc.stdout, proc.stdout + proc.stderr
+    assert took < PROMPT_S and "not running" in proc.stdout, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
 
 
@@ -67,7 +67,7 @@ def test_ctrl_c_and_sigterm_end_it_at_once(tmp_path, sig):
         proc.send_signal(sig)
         start = time.monotonic()
         assert proc.wait(timeout=10) == 130
-        assert time.monotonic() - start < 5
+        assert time.monotonic() - start < 10
     finally:
         if proc.poll() is None:
             proc.kill()

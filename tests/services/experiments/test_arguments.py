@@ -31,6 +31,13 @@ def test_a_refused_argument_is_named_and_nothing_is_created(tmp_path, args, said
     assert not out.exists(), "a refused experiment left its --out folder"
 
 
+def test_an_out_folder_that_cannot_be_made_is_refused(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    proc = experiment("kl-sweep", "--preset", "smoke", "--out", str(blocker / "out"))
+    assert proc.returncode == 2 and "--out: " in proc.stderr and "which is a file" in proc.stderr and "Traceback" not in proc.stderr
+
+
 def test_scoring_a_path_that_is_no_run_says_so(tmp_path):
     f = tmp_path / "file.txt"
     f.write_text("not a run")
