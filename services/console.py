@@ -17,8 +17,9 @@ import time
 from pathlib import Path
 from typing import TextIO
 
+from swarmmap.shared.config import STD_MODELS
 from swarmmap.shared.progress import PROGRESS_EVERY_S, duration
-from swarmmap.shared.rundir import read_summary
+from swarmmap.shared.rundir import config_doc, read_summary
 
 log = logging.getLogger("up")
 
@@ -113,8 +114,11 @@ def next_commands(run_dir: Path, summary: dict) -> list[str]:
     if (run_dir / "recording.rrd").exists():
         cmds.append((f"rerun {shlex.quote(str(run_dir / 'recording.rrd'))}", "the maps, robots and curves in Rerun"))
     if (run_dir / "models").is_dir():
-        cmds.append((f"swarmmap experiment score {where}", "uncertainty scores of the std maps (bnn, dropout; "
-                                                            "--ensemble scores any run's models together)"))
+        if (config_doc(run_dir).get("learner") or {}).get("model") in STD_MODELS:
+            cmds.append((f"swarmmap experiment score {where}", "uncertainty scores of its std maps"))
+        else:  # a FourierNet has no std of its own: the team's models as an ensemble have one
+            cmds.append((f"swarmmap experiment score {where} --ensemble", "uncertainty scores of the robots' models "
+                                                                          "as one ensemble"))
     if (run_dir / "metrics.csv").exists():
         cmds.append((f"swarmmap compare {where} OTHER_RUN_DIR", "its val_bce curves beside another run's"))
     width = max((len(c) for c, _ in cmds), default=0)

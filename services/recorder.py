@@ -18,6 +18,12 @@ within ``recorder.rejoin_timeout_s`` (``swarmmap up`` restarts crashed services)
 learner never came alive within ``recorder.start_timeout_s``. The recorder then waits up to
 ``recorder.linger_s`` for the other services to leave and exits 0 (success) or 1 (failure),
 so ``docker compose up --exit-code-from recorder`` and a SLURM job end with the run's status.
+
+Its log says what the run is doing, whoever launched it: the phases (every learner alive, the
+traversal, the training), a progress line every ``PROGRESS_EVERY_S`` seconds (the scans so
+far, then the slowest learner's round, the team's mean, min and max val_bce and the time
+left), each learner's Metrics, and at the end the verdict and one line with each robot's final
+val_bce, the team's mean, the wall time and the bytes sent.
 """
 
 from __future__ import annotations

@@ -134,14 +134,23 @@ def run_info(run_dir: Path) -> RunInfo:
                    (summary or {}).get("reason", ""))
 
 
-def config_numbers(run_dir: Path) -> tuple[int | None, int | None]:
-    """(robots, rounds) from a run's config.yaml, without validating it (an older run's is read too)."""
+def config_doc(run_dir: Path) -> dict:
+    """A run's config.yaml as a plain dict, without validating it (an older run's is read too); {} when unreadable."""
     import yaml
 
     try:
         doc = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def config_numbers(run_dir: Path) -> tuple[int | None, int | None]:
+    """(robots, rounds) from a run's config.yaml."""
+    doc = config_doc(run_dir)
+    try:
         return int(doc["robots"]), int(doc["learner"]["rounds"])
-    except (OSError, ValueError, TypeError, KeyError, yaml.YAMLError):
+    except (ValueError, TypeError, KeyError):
         return None, None
 
 

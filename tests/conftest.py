@@ -60,7 +60,7 @@ def zenoh_pair() -> tuple[ZenohSettings, ZenohSettings]:
 
 
 def recorded_run(run_dir: Path, ok: bool = True, losses: tuple[float, ...] = (0.1250, 0.2350), rounds: int = 60,
-                 run_id: str = "demo-1") -> Path:
+                 run_id: str = "demo-1", model: str = "fourier") -> Path:
     """A finished run directory as the recorder writes it (its own MetricsRecorder and summary):
     config.yaml, metrics.csv with rounds 0, 30 and ``rounds`` of one learner per loss,
     summary.json, an empty recording.rrd, models/ and logs/."""
@@ -72,7 +72,7 @@ def recorded_run(run_dir: Path, ok: bool = True, losses: tuple[float, ...] = (0.
 
     run_dir.mkdir(parents=True)
     cfg = resolve({"preset": "smoke", "run_id": run_id, "robots": len(losses), "run_dir": str(run_dir),
-                   "learner": {"rounds": rounds}}, environ={})
+                   "learner": {"rounds": rounds, "model": model}}, environ={})
     (run_dir / "config.yaml").write_text(cfg.dump_yaml())
     rec = MetricsRecorder(run_dir / "metrics.csv")
     for k, fraction in ((0, 0.0), (rounds // 2, 0.5), (rounds, 1.0)):

@@ -93,7 +93,7 @@ def test_the_console_ends_with_where_everything_went_and_what_to_run_next(smoke_
     block = proc.stdout[proc.stdout.index(f"run {summary['run_id']}: ok"):]
     assert "  final val_bce  " + "  ".join(f"robot {r} {v:.4f}" for r, v in enumerate(finals)) in block
     assert f"team mean      {sum(finals) / 3:.4f} over 3 robot(s)" in block and f"run directory  {run_dir}" in block
-    assert f"rerun {run_dir / 'recording.rrd'}" in block and f"swarmmap experiment score {run_dir}" in block
+    assert f"rerun {run_dir / 'recording.rrd'}" in block and f"swarmmap experiment score {run_dir} --ensemble" in block
     recorder = (run_dir / "logs" / "recorder-0.log").read_text()
     for phase in ("every learner is alive (3)", "traversal done:", "training: round 20 of 20", "final val_bce: robot 0"):
         assert phase in recorder, phase

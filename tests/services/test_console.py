@@ -45,7 +45,7 @@ def test_the_closing_block_says_how_it_ended_where_everything_went_and_what_to_r
     assert "run demo-1: ok (all 2 learners finished) in 42 s" in text
     assert "robot 0 0.1250  robot 1 0.2350" in text and "team mean      0.1800 over 2 robot(s)" in text
     assert "5.0 MB by the learners" in text and f"run directory  {run_dir}" in text
-    assert f"rerun {run_dir / 'recording.rrd'}" in text and f"swarmmap experiment score {run_dir}" in text
+    assert f"rerun {run_dir / 'recording.rrd'}" in text and f"swarmmap experiment score {run_dir} --ensemble" in text  # fourier
     assert f"swarmmap compare {run_dir}" in text and "swarmmap logs" not in text
 
 
@@ -54,3 +54,9 @@ def test_a_failed_run_points_at_its_logs(tmp_path):
     recorded_run(run_dir, ok=False)
     text = closing_block(run_dir)
     assert "FAILED (learner 1 left before finishing)" in text and f"swarmmap logs {run_dir}" in text
+
+
+def test_a_bayesian_run_is_scored_by_its_own_std_maps(tmp_path):
+    run_dir = recorded_run(tmp_path / "run", model="bnn")
+    text = closing_block(run_dir)
+    assert f"swarmmap experiment score {run_dir}  " in text and "--ensemble" not in text
