@@ -1,10 +1,5 @@
-"""The ``swarmmap`` command: one subcommand per service, plus ``status`` and ``up``.
-
-    swarmmap up --preset demo            # the whole system on this machine
-    swarmmap router|recorder|world|lidar|learner|observer  # one service (what up, compose and SLURM start)
-    swarmmap prepare --run-dir DIR [up options]   # write DIR/config.yaml for services started by hand or SLURM
-    swarmmap status --config RUN_DIR/config.yaml
-    swarmmap experiment kl-sweep|regularization --out DIR   # the paper's figures
+"""The ``swarmmap`` command: the whole system (``up``), its services one by one, the paper's
+experiments and the tools that look at runs.
 
 Every subcommand's ``--help`` lists its options; each option is a field of the run's config
 (see swarmmap.shared.config) and overrides the config file and the environment.
@@ -16,13 +11,51 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
 
-from swarmmap.shared.config import DEFAULT_PRESET, ConfigError, RunConfig, add_common_arguments, config_from_args
+from swarmmap.shared.config import (
+    DEFAULT_PRESET,
+    PRESETS,
+    ConfigError,
+    RunConfig,
+    add_common_arguments,
+    add_field_argument,
+    config_from_args,
+    resolve,
+)
 from swarmmap.shared.runtime import setup_logging, shutdown_event
 
+SUMMARY = ("swarmmap: decentralised multi-robot mapping with uncertainty (DiNNO and Bayesian networks) "
+           "as services on Zenoh.")
+EXAMPLES = """examples:
+  swarmmap up --preset smoke                  a first run: 3 robots, 60 rounds
+  swarmmap up                                 the demo: 7 robots, 800 rounds
+  swarmmap up --model bnn --robots 5 --rounds 300
+  swarmmap up --floorplan plan/model.svg      a CubiCasa5K plan (or a DiNNO .png, a ROS map .yaml)
+  swarmmap runs                               the runs in ./runs, their status and final loss
+  swarmmap status runs/RUN_ID                 a run: live services, round and val_bce per learner
+  swarmmap compare runs/A runs/B --out ab.png their val_bce curves
+  swarmmap experiment kl-sweep --preset smoke --out results/kl
+"""
+UP_EXAMPLES = """examples:
+  swarmmap up --preset smoke                        3 robots, 60 rounds: a first try
+  swarmmap up --model bnn --rounds 300              the Bayesian network: std maps show the uncertainty
+  swarmmap up --floorplan plan/model.svg --robots 4 a CubiCasa5K plan
+  swarmmap up --floorplan floor_img.png --waypoints tight_paths --preset dinno-fast
+  swarmmap up --set learner.model_shape=[2,64,32,1] --device cpu
+  SWARMMAP_LEARNER__ROUNDS=50 swarmmap up            any field from the environment
+Then look at what it left: rerun RUN_DIR/recording.rrd, swarmmap experiment score RUN_DIR.
+"""
+
 DESCRIPTIONS = {
-    "up": "Run the whole system locally: router, world, a lidar streamer and a learner per robot.",
+    "up": "Run the whole system locally: router, recorder, observer, world, a lidar streamer and a learner per robot.",
     "prepare": "Write a run's config.yaml (what up would run) for services started one by one, e.g. by SLURM.",
+    "experiment": "The paper's experiments (kl-sweep, regularization, consensus) and the scores of a run.",
+    "status": "A run's state: finished or not, and for a live one its services, round and val_bce per learner.",
+    "runs": "List the runs in a folder (default ./runs): status, robots, rounds, final mean val_bce, start time.",
+    "logs": "List a run's service logs, or print one service's log.",
+    "compare": "Plot runs' mean val_bce against round and against wall time into one PNG.",
     "secrets": "Write a run's credentials: a CA, a certificate per service and the router's access policy.",
     "router": "A Zenoh router for discovery across hosts and containers.",
     "recorder": "The recorder: writes the run directory (config, metrics, summary, ground truth) and ends the run.",
@@ -30,44 +63,90 @@ DESCRIPTIONS = {
     "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
     "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
-    "status": "List the live services of a run and their message rates.",
 }
 SECTIONS = {"up": "up", "prepare": "up", "secrets": None, "router": None, "recorder": "recorder", "world": "world", "lidar": "lidar",
-            "learner": "learner", "observer": "observer",
-            "status": None}
+            "learner": "learner", "observer": "observer", "status": None}
+TOOLS = ("runs", "logs", "compare")  # read run directories only: no config, no Zenoh
+# What a user sets most, first in up's and prepare's help: (config path, flag, help where the field's own does not fit).
+EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learner.rounds", "--rounds", None),
+            ("learner.model", "--model", None),
+            ("world.floorplan", "--floorplan", "procedural, a CubiCasa5K model.svg, a DiNNO .png or a ROS map_server .yaml"),
+            ("world.waypoints", "--waypoints", "folder of .npy waypoint paths, one per robot (default: paths planned "
+                                               "through the plan)"),
+            ("run_dir", "--run-dir", None),
+            ("learner.device", "--device", "torch device of the learners: auto (a GPU when there is one), cpu, cuda, "
+                                           "cuda:1 (the observer's: --set observer.device=...)"),
+            ("seed", "--seed", None))
+UP_RUN_FLAGS = (("learner.transport", "--transport", "Algorithm 1 over Zenoh, one learner process per robot, or in one process"),
+                ("learner.algorithm", "--algorithm", None), ("learner.regularization", "--regularization", None),
+                ("lidar.replay_speed", "--replay-speed", "with --replay: multiple of the recorded rate, 0 = as fast as "
+                                                         "the learners take it"))
+UP_SHOWN = {"run_id": "run-<date>-<time>, made from the time the run starts", "run_dir": "runs/<run id>"}
+
+
+def version() -> str:
+    """The installed package's version (its metadata), e.g. ``0.1.0``."""
+    try:
+        return metadata.version("swarmmap")
+    except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def add_up_arguments(p: argparse.ArgumentParser) -> None:
+    """``up``'s and ``prepare``'s options: everyday ones first, Zenoh and TLS last."""
+    defaults = resolve(preset=DEFAULT_PRESET, environ={})  # what a plain `swarmmap up` runs
+    everyday = p.add_argument_group(f"everyday options (defaults: what a plain swarmmap up runs, the {DEFAULT_PRESET} preset)")
+    for path, flag, text in EVERYDAY:
+        if path == "preset":
+            everyday.add_argument("--preset", dest="top.preset", default=argparse.SUPPRESS, metavar="{" + ",".join(PRESETS) + "}",
+                                  help=f"named preset applied under the config file [default: {DEFAULT_PRESET}]")
+            continue
+        add_field_argument(everyday, path, flag, defaults=defaults, help=text, shown_default=UP_SHOWN.get(path))
+    advanced = add_common_arguments(p, "up", defaults=defaults, skip={"preset", "robots", "seed", "run_dir"}, shown=UP_SHOWN,
+                                    more=UP_RUN_FLAGS)
+    advanced.add_argument("--insecure", dest="zenoh.insecure", action="store_const", const=True, default=argparse.SUPPRESS,
+                          help="no TLS, authentication or access control (the same as --zenoh-insecure; every service warns)")
+
+
+def add_tool_arguments(name: str, p: argparse.ArgumentParser) -> None:
+    """The run tools' own options (they read run directories, not a config)."""
+    if name == "status":
+        p.add_argument("run_dir", nargs="?", type=Path, metavar="RUN_DIR", help="the run directory (or give --config)")
+        p.add_argument("--window", type=float, default=2.0, help="seconds to listen to a live run [default: 2.0]")
+    elif name == "runs":
+        p.add_argument("folder", nargs="?", type=Path, default=Path("runs"), metavar="FOLDER",
+                       help="a folder of run directories [default: runs]")
+    elif name == "logs":
+        p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="the run directory")
+        p.add_argument("service", nargs="?", metavar="SERVICE", help="a service's log, e.g. learner-0 (or learner: every "
+                                                                      "learner's); without it, the list of logs")
+        p.add_argument("--tail", type=int, default=0, metavar="N", help="only the last N lines of each log (0: all)")
+    elif name == "compare":
+        p.add_argument("runs", nargs="+", metavar="RUN_DIR[=LABEL]", help="run directories, each optionally with its label")
+        p.add_argument("--out", type=Path, default=Path("compare.png"), help="the PNG to write [default: compare.png]")
+        p.add_argument("--target", type=float, default=None, help="draw this val_bce as a line and say when each run reached it")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarmmap", description=__doc__.split("\n\n")[0],
+    """The ``swarmmap`` argument parser: one subcommand per service, launcher, experiment and tool."""
+    parser = argparse.ArgumentParser(prog="swarmmap", description=SUMMARY, epilog=EXAMPLES,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"swarmmap {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, description in DESCRIPTIONS.items():
-        p = sub.add_parser(name, help=description, description=description)
-        add_common_arguments(p, SECTIONS[name])
-        if name in ("up", "prepare"):
-            p.add_argument("--rounds", dest="learner.rounds", default=argparse.SUPPRESS,
-                           help="communication rounds per learner (learner.rounds)")
-            p.add_argument("--transport", dest="learner.transport", default=argparse.SUPPRESS, metavar="{zenoh,inproc}",
-                           help="Algorithm 1 over Zenoh, one learner process per robot (default), or in one process (learner.transport)")
-            p.add_argument("--model", dest="learner.model", default=argparse.SUPPRESS, metavar="{fourier,bnn,dropout}",
-                           help="DiNNO's FourierNet, the paper's Bayesian network or a FourierNet with MC dropout (learner.model)")
-            p.add_argument("--regularization", dest="learner.regularization", default=argparse.SUPPRESS,
-                           metavar="{uniform-l2,separate-l2,separate-kl}", help="bnn consensus regularisation (learner.regularization)")
-            p.add_argument("--algorithm", dest="learner.algorithm", default=argparse.SUPPRESS,
-                           metavar="{dinno,dsgd,dsgt,individual,centralized}", help="DiNNO or a baseline (learner.algorithm)")
-            p.add_argument("--floorplan", dest="world.floorplan", default=argparse.SUPPRESS,
-                           help="procedural, a CubiCasa5K model.svg or a DiNNO .png (world.floorplan)")
-            p.add_argument("--waypoints", dest="world.waypoints", default=argparse.SUPPRESS,
-                           help="folder of .npy waypoint paths, one per robot (world.waypoints)")
-            p.add_argument("--insecure", dest="zenoh.insecure", action="store_const", const=True, default=argparse.SUPPRESS,
-                           help="no TLS, authentication or access control (zenoh.insecure; warns)")
-            p.add_argument("--replay-speed", dest="lidar.replay_speed", default=argparse.SUPPRESS,
-                           help="with --replay: multiple of the recorded rate, 0 = as fast as the learners take it")
-        if name == "status":
-            p.add_argument("--window", type=float, default=2.0, help="seconds to measure message rates over")
-    from swarmmap.services.experiments import add_parser
+        if name == "experiment":
+            from swarmmap.services.experiments import add_parser
 
-    add_parser(sub)
+            add_parser(sub, description)
+            continue
+        extra = {"epilog": UP_EXAMPLES, "formatter_class": argparse.RawDescriptionHelpFormatter} if name == "up" else {}
+        p = sub.add_parser(name, help=description, description=description, **extra)
+        if name in ("up", "prepare"):
+            add_up_arguments(p)
+        elif name in TOOLS or name == "status":
+            add_tool_arguments(name, p)
+        if name not in ("up", "prepare", *TOOLS):
+            add_common_arguments(p, SECTIONS[name])
     return parser
 
 
@@ -96,27 +175,41 @@ def _runner(command: str) -> Callable:
     return run
 
 
+def run_tool(args: argparse.Namespace) -> int:
+    """``runs``, ``logs``, ``compare``: they read run directories and print what they found."""
+    from swarmmap.services import runs
+
+    try:
+        return {"runs": runs.list_runs, "logs": runs.show_logs, "compare": runs.compare}[args.command](args)
+    except runs.ToolError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Parse the command line and run the subcommand; returns the exit status (2: refused)."""
     args = build_parser().parse_args(argv)
     if args.command == "experiment":
         from swarmmap.services.experiments import main as experiment
 
         setup_logging("info", "experiment")
-        logging.getLogger("up").setLevel(logging.WARNING)  # one line per Metrics is too much here; Progress reports
+        logging.getLogger("up").setLevel(logging.WARNING)  # the console of each run is too much here; Progress reports
         return experiment(args)
+    if args.command in TOOLS:
+        return run_tool(args)
+    stop = shutdown_event()
+    if args.command == "status":
+        from swarmmap.services.status import run_status
+
+        setup_logging("warning", "status")
+        return run_status(args, stop)
     try:
         cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command in ("up", "prepare") else None)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)
         return 2
     log = setup_logging(cfg.log_level, args.command)
-    stop = shutdown_event()
     try:
-        if args.command == "status":
-            from swarmmap.services.status import report
-
-            print(report(cfg, args.window))
-            return 0
         return _runner(args.command)(cfg, stop)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)

@@ -1,16 +1,22 @@
 """``swarmmap up``: the whole system as local processes on loopback, and its run directory.
 
-Starts a router on a free port, the recorder, the Rerun observer (unless ``up.observer`` is
-off), then N learners and N lidar streamers (each its own OS process, all Zenoh peers connected
-to the router, multicast scouting off), waits until they are alive, then starts the world.
+First it checks what it can before anything exists (services/preflight.py: the plan and its
+paths, the devices, the run directory, Zenoh's settings) and refuses with status 2, naming
+the value and the fix. Then it starts a router on a free port, the recorder, the Rerun
+observer (unless ``up.observer`` is off), then N learners and N lidar streamers (each its own
+OS process, all Zenoh peers connected to the router, multicast scouting off), waits until they
+are alive, then starts the world.
 The recorder (``swarmmap recorder``, the same service compose and SLURM start) writes the run
 directory and ends the run: when every learner has finished, or one has failed, it says so on
 ``run/done`` and every service exits by itself; ``up`` returns the recorder's status. A
 learner, lidar or world that crashes is started again (``up.restarts`` times each; a learner
 resumes from its checkpoint and rejoins its team). A service that fails for good, or Ctrl-C,
-stops the rest (in parallel, within ``up.stop_grace_s``). Services die with ``up``, even when
-it is killed (a parent-death signal). ``up`` adds every service's pid, exit status and restarts
-to ``summary.json``.
+stops the rest (in parallel, within ``up.stop_grace_s``); one that exits with status 2 refused
+its settings, which would only repeat, and ends the run at once, its reason in ``summary.json``.
+Services die with ``up``, even when it is killed (a parent-death signal). ``up`` adds every
+service's pid, exit status and restarts to ``summary.json``. On its console it says each phase
+(the plan, starting the services, the traversal, the training), one progress line of the team's
+training, and a closing block: how the run ended, where its outputs are, what to run next.
 
 Run directory: ``config.yaml`` (the resolved config; every service reads it), ``metrics.csv``,
 ``summary.json``, ``groundtruth.png`` and ``groundtruth.npz`` (grid and validation set),
@@ -26,6 +32,7 @@ import ctypes
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -38,13 +45,16 @@ from pathlib import Path
 
 import yaml
 
+from swarmmap.services.console import Console, closing_block
+from swarmmap.services.preflight import PlanFacts, check_run
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, fail
+from swarmmap.shared.config import ConfigError, RunConfig, fail, validate_config
 from swarmmap.shared.fingerprint import settings_fingerprint
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.plans import plan_reference
-from swarmmap.shared.protocol import Keys, Metrics
+from swarmmap.shared.progress import TeamProgress, TraversalProgress
+from swarmmap.shared.protocol import Keys, Metrics, Scan
 from swarmmap.shared.recording import RecordingError, read_recording
 from swarmmap.shared.secrets import access_policy, write_secrets
 from swarmmap.shared.slots import slots_dir
@@ -52,7 +62,9 @@ from swarmmap.shared.slots import slots_dir
 log = logging.getLogger("up")
 
 # How long after a service failed (for good) the recorder gets to end the run by itself (run/done).
+# A service that exits with status 2 refused its settings: that would only repeat, so it ends the run at once.
 FAILURE_GRACE_S = 30.0
+REFUSED = 2
 RESTARTABLE = ("learner", "lidar", "world")  # crashed ones are started again, up.restarts times each
 
 
@@ -150,10 +162,12 @@ class Child:
 
 
 class Launcher:
-    """Starts, watches and stops the services of one run."""
+    """Starts, watches and stops the services of one run; with a ``console`` it shows the run's
+    progress and ends with the closing block (``swarmmap up``), without one it only logs."""
 
-    def __init__(self, cfg: RunConfig, stop: threading.Event):
+    def __init__(self, cfg: RunConfig, stop: threading.Event, console: Console | None = None):
         self.stop = stop
+        self.console = console
         self.router_endpoint = f"tcp/127.0.0.1:{free_port()}"
         zenoh = cfg.zenoh.model_copy(update={"mode": "peer", "connect": [self.router_endpoint],
                                              "listen": ["tcp/127.0.0.1:0"], "multicast_scouting": False})
@@ -166,6 +180,11 @@ class Launcher:
         self.keys = Keys(self.cfg.key_prefix, self.cfg.run_id)
         self.children: list[Child] = []
         self.config_path = self.run_dir / "config.yaml"
+        self.team = TeamProgress(self.cfg.robots, self.cfg.learner.rounds)
+        self.traversal = TraversalProgress(self.cfg.robots)
+        self.failure: str | None = None  # why up ended the run, for summary.json (a refusal, a service that failed)
+        self.failure_code: int | None = None  # that service's exit status
+        self._phase = "starting"
 
     def spawn(self, service: str, ident: int, *extra: str) -> Child:
         """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/."""
@@ -197,12 +216,14 @@ class Launcher:
         return next((c for c in self.children if c.proc.poll() not in (None, 0)), None)
 
     def wait_alive(self, bus: Bus, service: str, idents: set[str]) -> None:
+        """Wait until ``service`` ``idents`` are alive; raises RuntimeError when one exited or none came in time."""
         deadline = time.monotonic() + self.cfg.up.start_timeout_s
         while not self.stop.is_set():
             missing = idents - {i for _, i in bus.alive(service)}
             if not missing:
                 return
             if (bad := self.failed()) is not None:
+                self.failure, self.failure_code = failure_reason(bad), bad.proc.returncode
                 raise RuntimeError(f"{bad.name} exited with status {bad.proc.returncode} while starting; "
                                    f"see {bad.log_path}:\n{tail(bad.log_path)}")
             if time.monotonic() > deadline:
@@ -244,10 +265,14 @@ class Launcher:
                     c.proc.wait()
 
     def run(self) -> int:
+        """Check the run, then start every service and watch them until the run is over; returns
+        0 (every learner finished), 1 (it failed, also when a service refused its settings), 130 (interrupted)."""
         cfg = self.cfg
+        facts = check_run(cfg, endpoints=False, observer=cfg.up.observer)  # raises before anything exists
+        self.traversal.expected = facts.expected_scans
+        self.announce(facts)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         write_config(cfg)
-        log.info("run %s: %d robots, %d rounds -> %s", cfg.run_id, cfg.robots, cfg.learner.rounds, self.run_dir)
         t0 = time.monotonic()
         status = 1
         try:
@@ -255,23 +280,10 @@ class Launcher:
                        "--set", "zenoh.connect=[]")
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
                 bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics)
-                self.wait_alive(bus, "router", {"0"})
-                recorder = self.spawn("recorder", 0)  # first, so that it records the run from the start
-                if cfg.up.observer:
-                    self.spawn("observer", 0)
-                ids = {str(i) for i in range(cfg.robots)}
-                if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
-                    self.spawn("learner", 0)
-                for i in range(cfg.robots):
-                    if cfg.learner.transport == "zenoh":
-                        self.spawn("learner", i, "--robot", str(i))
-                    self.spawn("lidar", i, "--robot", str(i))
-                self.wait_alive(bus, "recorder", {"0"})
-                self.wait_alive(bus, "learner", ids)
-                self.wait_alive(bus, "lidar", ids)
-                self.spawn("world", 0)
+                bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add)
+                recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
-            if status != 130:  # the run is over: the services leave by themselves (run/done)
+            if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves (run/done)
                 self.let_leave()
         except RuntimeError as exc:
             log.error("%s", exc)
@@ -281,33 +293,97 @@ class Launcher:
             if cfg.learner.compute_slots:
                 shutil.rmtree(slots_dir(cfg.run_id), ignore_errors=True)
             self.complete_summary(time.monotonic() - t0, status)
+            if self.console is not None:
+                self.console.close()
+                print(closing_block(self.run_dir), flush=True)
         return status
 
+    def announce(self, facts: PlanFacts) -> None:
+        """The run's plan, settings and directory, before anything starts."""
+        cfg, s = self.cfg, self.cfg.learner
+        log.info("run %s: %d robots, %d rounds, model %s %s (%s, %s transport) on device %s%s", cfg.run_id, cfg.robots, s.rounds,
+                 s.model, s.model_shape, s.algorithm, s.transport, s.device, f", preset {cfg.preset}" if cfg.preset else "")
+        log.info("%s", facts.describe())
+        log.info("run directory: %s", self.run_dir)
+
+    def start_services(self, bus: Bus, t0: float) -> Child:
+        """Start the recorder, the observer, the learners and lidar streamers, wait until they
+        are alive, then the world; returns the recorder."""
+        cfg = self.cfg
+        learners = 1 if cfg.learner.transport == "inproc" else cfg.robots
+        names = ["router", "recorder"] + (["observer"] if cfg.up.observer else []) + [
+            f"{learners} learner(s)", f"{cfg.robots} lidar streamer(s)", "world"]
+        log.info("starting %d services: %s", 3 + int(cfg.up.observer) + learners + cfg.robots, ", ".join(names))
+        self.wait_alive(bus, "router", {"0"})
+        recorder = self.spawn("recorder", 0)  # first, so that it records the run from the start
+        if cfg.up.observer:
+            self.spawn("observer", 0)
+        ids = {str(i) for i in range(cfg.robots)}
+        if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
+            self.spawn("learner", 0)
+        for i in range(cfg.robots):
+            if cfg.learner.transport == "zenoh":
+                self.spawn("learner", i, "--robot", str(i))
+            self.spawn("lidar", i, "--robot", str(i))
+        self.wait_alive(bus, "recorder", {"0"})
+        self.wait_alive(bus, "learner", ids)
+        self.wait_alive(bus, "lidar", ids)
+        self.spawn("world", 0)
+        log.info("every service but the world is alive after %.1f s; the world builds the plan and drives the robots",
+                 time.monotonic() - t0)
+        return recorder
+
+    def show_progress(self, force: bool = False) -> None:
+        """Log each phase once as it begins, and draw the progress line of the current one
+        (at once when a phase begins, or with ``force``)."""
+        phase = self._phase
+        if self.team.started and phase != "training":
+            if self.traversal.started:
+                log.info("%s", self.traversal.line())
+            log.info("training: %d learner(s), %d rounds of Algorithm 1", self.cfg.robots, self.cfg.learner.rounds)
+            self._phase = "training"
+        elif self.traversal.started and phase == "starting":
+            log.info("traversal: the robots drive their paths")
+            self._phase = "traversal"
+        if self.console is not None:
+            line = self.team.line() if self._phase == "training" else self.traversal.line()
+            self.console.progress(line, force=force or phase != self._phase)
+
     def on_metrics(self, m: Metrics) -> None:
-        log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
-                 m.consensus_error, "  (final)" if m.final else "")
+        """One learner's Metrics: into the team's progress (each robot's line in the debug log)."""
+        self.team.add(m)
+        log.debug("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
+                  m.consensus_error, "  (final)" if m.final else "")
 
     def watch(self, recorder: Child) -> int:
         """Wait until the recorder says the run is over (it exits 0 or 1). A service that fails
-        gives the recorder FAILURE_GRACE_S to end the run (``run/done``) before ``up`` stops it."""
+        gives the recorder FAILURE_GRACE_S to end the run (``run/done``) before ``up`` stops it;
+        one that refuses its settings (status 2) ends the run at once."""
         failed_at = None
         while not self.stop.is_set():
             code = recorder.proc.poll()
-            if code is not None:
+            if code is not None and code != REFUSED:
+                self.show_progress(force=True)  # the team's last line
                 if code == 0:
                     log.info("the run is over: every learner finished")
                 else:
                     log.error("the run failed (recorder status %d); see %s", code, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
             for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
-                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0, 2) and c.restarts < self.cfg.up.restarts:
+                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
                     self.restart(c)
+            if (refused := next((c for c in self.children if c.proc.poll() == REFUSED), None)) is not None:
+                self.failure, self.failure_code = failure_reason(refused), REFUSED
+                log.error("%s; ending the run now (a refusal would only repeat). Its log (%s) ends:\n%s",
+                          self.failure, refused.log_path, tail(refused.log_path))
+                return 1
             if failed_at is None and (bad := self.failed()) is not None:
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
-                failed_at = time.monotonic()
+                failed_at, self.failure, self.failure_code = time.monotonic(), failure_reason(bad), bad.proc.returncode
             if failed_at is not None and time.monotonic() - failed_at > FAILURE_GRACE_S:
                 return 1
+            self.show_progress()
             self.stop.wait(0.2)
         log.info("interrupted; stopping every service")
         return 130
@@ -318,8 +394,11 @@ class Launcher:
         try:
             summary = json.loads(path.read_text())
         except (OSError, ValueError):  # the recorder never got to write it
-            summary = {"run_id": self.cfg.run_id, "robots": self.cfg.robots, "ok": False,
-                       "reason": "the recorder wrote no summary", "learners": {}}
+            summary = {"run_id": self.cfg.run_id, "preset": self.cfg.preset, "robots": self.cfg.robots,
+                       "rounds": self.cfg.learner.rounds, "ok": False, "reason": "the recorder wrote no summary",
+                       "started": time.time() - wall, "learners": {}}
+        if self.failure is not None and status != 0:  # why up ended the run, which the recorder could not know
+            summary.update(ok=False, reason=self.failure)
         learners = {c.ident: c for c in self.children if c.service == "learner"}
         for robot, entry in summary.get("learners", {}).items():
             c = learners.get(int(robot)) or learners.get(0)  # in-process: learner-0 serves every robot
@@ -345,7 +424,10 @@ def replay_config(cfg: RunConfig, folder: Path) -> RunConfig:
         recs[rec.robot] = rec
     if sorted(recs) != list(range(len(recs))):
         raise RecordingError(folder, f"recordings of robots {sorted(recs)}; expected robots 0..{len(recs) - 1}")
-    recorded = RunConfig.model_validate(recs[0].config)
+    try:
+        recorded = validate_config(recs[0].config)
+    except ConfigError as exc:
+        raise RecordingError(files[0], f"its recorded config is refused here: {exc.message.splitlines()[-1].strip()}") from None
     plan = recs[0].header.get("plan", {})
     if plan.get("sha256") and plan_reference(plan["floorplan"]).get("sha256") != plan["sha256"]:
         raise RecordingError(folder, f"the recorded floor plan {plan['floorplan']} is missing or has changed since")
@@ -364,13 +446,42 @@ def tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
+LOG_PREFIX = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ ([A-Z]+) [\w.-]+: ")  # setup_logging's time, level, service
+
+
+def last_error(lines: list[str]) -> str:
+    """The last error a service said in ``lines`` of its log: its last ERROR record (with the
+    lines it spans) or ``config error`` block, else the last line of a traceback, else its last lines."""
+    starts = [i for i, line in enumerate(lines) if (m := LOG_PREFIX.match(line)) and m.group(1) in ("ERROR", "CRITICAL")
+              or line.startswith("config error")]
+    if starts:
+        end = next((j for j in range(starts[-1] + 1, len(lines)) if LOG_PREFIX.match(lines[j])), len(lines))
+        block = lines[starts[-1] : min(end, starts[-1] + 8)]
+    elif any(line.startswith("Traceback") for line in lines):
+        block = [next(line for line in reversed(lines) if line.strip())]
+    else:
+        block = lines[-3:]
+    return " ".join(LOG_PREFIX.sub("", line).strip() for line in block if line.strip())
+
+
+def failure_reason(child: Child) -> str:
+    """Why ``child`` ended: its exit status and its log's last error (what it said, without the
+    log's time stamps), for summary.json."""
+    lines = [line for line in tail(child.log_path, 60).splitlines() if not line.startswith("pybullet build time")]
+    said = last_error(lines)[:600] or "(its log is empty)"
+    verb = "refused to run" if child.proc.returncode == REFUSED else "failed"
+    return f"{child.name} {verb} (exit status {child.proc.returncode}): {said}"
+
+
 def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
-    """``swarmmap prepare``: write the run's config.yaml and print its path."""
+    """``swarmmap prepare``: check the run as ``up`` would, then write its config.yaml (and its
+    credentials) and print its path; nothing is written when a check fails."""
     try:
         cfg = prepare(cfg)
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
         return 2
+    check_run(cfg, endpoints=True)
     print(write_config(cfg))
     return 0
 
@@ -382,9 +493,11 @@ def other_run_in(cfg: RunConfig) -> str | None:
     if not path.exists():
         return None
     try:
-        old = RunConfig.model_validate(yaml.safe_load(path.read_text()))
+        old = validate_config(yaml.safe_load(path.read_text()) or {})
+    except ConfigError as exc:
+        return f"{path} holds a config this version refuses ({exc.message.splitlines()[-1].strip()}); choose another --run-dir"
     except Exception as exc:  # noqa: BLE001 - any unreadable config is named, never overwritten
-        return f"{path} cannot be read ({str(exc).splitlines()[0]})"
+        return f"{path} cannot be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
     before, now = settings_fingerprint(old), settings_fingerprint(cfg)
     if before == now:
         return None
@@ -393,8 +506,9 @@ def other_run_in(cfg: RunConfig) -> str | None:
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
+    """``swarmmap up``: check the run, start it, show its progress, end with the closing block."""
     try:
-        launcher = Launcher(cfg, stop)
+        launcher = Launcher(cfg, stop, Console())
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
         return 2

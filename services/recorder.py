@@ -19,6 +19,12 @@ within ``recorder.rejoin_timeout_s`` (``swarmmap up`` restarts crashed services)
 learner never came alive within ``recorder.start_timeout_s``. The recorder then waits up to
 ``recorder.linger_s`` for the other services to leave and exits 0 (success) or 1 (failure),
 so ``docker compose up --exit-code-from recorder`` and a SLURM job end with the run's status.
+
+Its log says what the run is doing, whoever launched it: the phases (every learner alive, the
+traversal, the training), a progress line every ``PROGRESS_EVERY_S`` seconds (the scans so
+far, then the slowest learner's round, the team's mean, min and max val_bce and the time
+left), each learner's Metrics, and at the end the verdict and one line with each robot's final
+val_bce, the team's mean, the wall time and the bytes sent.
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ import numpy as np
 from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
-from swarmmap.shared.protocol import Keys, Metrics, RunDone, WorldMap
+from swarmmap.shared.progress import PROGRESS_EVERY_S, TeamProgress, TraversalProgress, duration
+from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan, WorldMap
 
 log = logging.getLogger("recorder")
 
@@ -149,6 +156,48 @@ class RunTracker:
             return None
 
 
+class PhaseLog:
+    """The run's phases (services alive, traversal, training) and, every ``every`` seconds, a
+    progress line, in the recorder's log: what compose, SLURM and ``up`` runs say as they go."""
+
+    def __init__(self, robots: int, rounds: int, every: float = PROGRESS_EVERY_S):
+        self.robots = robots
+        self.team = TeamProgress(robots, rounds)
+        self.traversal = TraversalProgress(robots)
+        self.every = every
+        self.phase = "waiting"
+        self._last = -float("inf")
+
+    def tick(self, tracker: RunTracker, now: float | None = None) -> None:
+        """Log a phase that began since the last call, and the progress line when one is due."""
+        now = time.monotonic() if now is None else now
+        if self.phase == "waiting" and not tracker.learners_missing():
+            log.info("every learner is alive (%d); waiting for the world to drive", self.robots)
+            self.phase = "ready"
+        if self.traversal.started and self.phase in ("waiting", "ready"):
+            log.info("traversal: the robots drive their paths")
+            self.phase, self._last = "traversal", -float("inf")
+        if self.team.started and self.phase != "training":
+            if self.traversal.started:
+                log.info("%s", self.traversal.line(now))
+            log.info("training: the learners have their points")
+            self.phase, self._last = "training", -float("inf")
+        if now - self._last >= self.every:
+            line = self.team.line(now) if self.phase == "training" else self.traversal.line(now)
+            if line is not None:
+                log.info("%s", line)
+                self._last = now
+
+
+def closing_line(doc: dict) -> str:
+    """A finished run in one line: each robot's final val_bce, the team's mean, time and bytes."""
+    finals = {r: v["final_val_bce"] for r, v in doc["learners"].items() if v.get("final_val_bce") is not None}
+    sent = sum(v.get("bytes_sent") or 0 for v in doc["learners"].values())
+    per_robot = ", ".join(f"robot {r} {v:.4f}" for r, v in finals.items()) or "none reported"
+    mean = f"; team mean {sum(finals.values()) / len(finals):.4f}" if finals else ""
+    return f"final val_bce: {per_robot}{mean}; {duration(doc['wall_time_s'])}; {sent / 1e6:.1f} MB sent by the learners"
+
+
 def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
     grid = world.grid.numpy()
@@ -159,7 +208,7 @@ def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     atomic_write_bytes(run_dir / "groundtruth.npz", buf.getvalue())
 
 
-def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wall: float) -> dict:
+def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wall: float, started: float | None = None) -> dict:
     """What ``summary.json`` holds: the run's outcome and, per learner, its first and last metrics."""
     learners = {}
     for robot in range(cfg.robots):
@@ -177,7 +226,18 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
         }
     return {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),
             "transport": cfg.transport(), "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
+            "started": round(time.time() - wall if started is None else started, 3), "finished": round(time.time(), 3),
             "learners": learners}
+
+
+def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
+    """Log how the run ended (the verdict, the team's last progress line, the closing line) and
+    write ``summary.json``."""
+    (log.info if doc["ok"] else log.error)("run %s: %s", "succeeded" if doc["ok"] else "FAILED", doc["reason"])
+    if phases.team.started:
+        log.info("%s", phases.team.line())
+    log.info("%s", closing_line(doc))
+    atomic_write_text(run_dir / "summary.json", json.dumps(doc, indent=2) + "\n")
 
 
 def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
@@ -196,6 +256,7 @@ def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
 
 
 def others_alive(bus: Bus) -> set[tuple[str, str]]:
+    """The run's services still alive, bystanders left out."""
     return {(s, i) for s, i in bus.alive() if s not in BYSTANDERS}
 
 
@@ -207,14 +268,16 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     if not (run_dir / "config.yaml").exists():  # `up` and the SLURM script wrote it already
         atomic_write_text(run_dir / "config.yaml", cfg.dump_yaml())
-    t0 = time.monotonic()
+    t0, started = time.monotonic(), time.time()
     metrics = MetricsRecorder(run_dir / "metrics.csv")
     tracker = RunTracker(cfg.robots, s.rejoin_timeout_s)
+    phases = PhaseLog(cfg.robots, cfg.rounds())
     keys = Keys(cfg.key_prefix, cfg.run_id)
 
     def on_metrics(m: Metrics) -> None:
         metrics.add(m)
         tracker.on_metrics(m)
+        phases.team.add(m)
         log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
                  m.consensus_error, "  (final)" if m.final else "")
 
@@ -225,14 +288,17 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
 
     with Bus.open(cfg.zenoh, keys, "recorder", 0) as bus:
         bus.subscribe(keys.metrics("*"), Metrics, on_metrics)
+        bus.subscribe(keys.scan("*"), Scan, phases.traversal.add)
         for service in ("learner", "lidar", "world"):
             bus.watch_alive(service, lambda ident, alive, service=service: tracker.on_alive(service, ident, alive))
         done = bus.publisher(keys.run_done())
         bus.announce()
         threading.Thread(target=fetch_ground_truth, name="ground-truth", daemon=True).start()
-        log.info("recording run %s (%d robots) into %s", cfg.run_id, cfg.robots, run_dir)
+        log.info("recording run %s (%d robots, %d rounds) into %s; waiting for %d learner(s), %d lidar streamer(s) and the world",
+                 cfg.run_id, cfg.robots, cfg.rounds(), run_dir, cfg.robots, cfg.robots)
         outcome = None
         while outcome is None and not stop.is_set():
+            phases.tick(tracker)
             outcome = tracker.outcome()
             if outcome is None and time.monotonic() - t0 > s.start_timeout_s and (missing := tracker.learners_missing()):
                 outcome = False, f"learner(s) {missing} never came alive within {s.start_timeout_s:.0f} s"
@@ -241,10 +307,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         if interrupted:
             outcome = False, f"the recorder was stopped before the run was over (finished: {sorted(tracker.finished)})"
         ok, reason = outcome
-        (log.info if ok else log.error)("run %s: %s", "succeeded" if ok else "FAILED", reason)
         msg = RunDone(run=cfg.run_id, sender=0, ok=ok, reason=reason, finished=sorted(tracker.finished))
-        atomic_write_text(run_dir / "summary.json",
-                          json.dumps(summary(cfg, metrics, ok, reason, time.monotonic() - t0), indent=2) + "\n")
+        write_summary(run_dir, summary(cfg, metrics, ok, reason, time.monotonic() - t0, started), phases)
         # Say it until every other service has left (a late subscriber still hears it), bounded.
         deadline = time.monotonic() + (0 if interrupted else s.linger_s)
         done.put(msg)

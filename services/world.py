@@ -33,8 +33,8 @@ from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
 from swarmmap.shared.mapfiles import save_ros_map, trinary_pixels
-from swarmmap.shared.paths import coverage, path_length, plan_paths, point_along
-from swarmmap.shared.plans import load_floorplan
+from swarmmap.shared.paths import coverage, path_length, point_along
+from swarmmap.shared.plans import load_floorplan, robot_paths
 from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
 from swarmmap.shared.sensing import beam_angles, validation_set
 
@@ -47,28 +47,6 @@ ROBOTS_GROUP = 4
 def build_plan(cfg: RunConfig) -> FloorPlan:
     """The run's floor plan (``world.floorplan``; procedural plans are seeded by the run's seed)."""
     return load_floorplan(cfg.world.floorplan, cfg.world, cfg.seed)
-
-
-MIN_PATH_M = 0.5  # a planned path shorter than this is a robot standing still
-
-
-def robot_paths(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid) -> list[np.ndarray]:
-    """The plan's own waypoint paths (one per robot), or paths planned through free space."""
-    if plan.paths is not None:
-        if len(plan.paths) < cfg.robots:
-            raise PlanError(cfg.world.waypoints, f"{len(plan.paths)} waypoint paths for {cfg.robots} robots")
-        return plan.paths[: cfg.robots]
-    paths = plan_paths(plan, grid, cfg.robots, cfg.seed, cfg.world.rooms_per_robot, cfg.world.robot_clearance_m,
-                       cfg.world.coverage_spacing_m, cfg.world.rooms)
-    lengths = [path_length(p) for p in paths]
-    if max(lengths) < MIN_PATH_M:
-        raise PlanError(plan.source, f"no usable path: the planned paths are {', '.join(f'{v:.1f}' for v in lengths)} m "
-                                     f"(the plan has {len(plan.rooms)} room(s) a robot can reach); a robot that does not "
-                                     "move sees one place only")
-    still = [r for r, v in enumerate(lengths) if v < MIN_PATH_M]
-    if still:
-        log.warning("robot(s) %s have no path to drive (fewer reachable rooms than robots): each sees one place only", still)
-    return paths
 
 
 def export(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, folder: Path) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import difflib
 import os
 import sys
 import types
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from swarmmap.shared.layout import state_copies
 from swarmmap.shared.protocol import NAME_PATTERN
@@ -36,6 +37,23 @@ class Section(BaseModel):
     """Base of every config model: unknown keys are errors, assignments are validated."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+def parse_shape(value: Any) -> list[int]:
+    """A model shape as users write it, in one syntax everywhere: ``2,64,32,1``, ``[2, 64, 32, 1]``
+    (``--set``, the environment, a config file, the experiments' ``--shapes``), a list of ints,
+    or ``2 64 32 1`` split by the shell (``--model-shape``); raises ValueError naming the form."""
+    if isinstance(value, (list, tuple)):
+        if all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            return list(value)
+        value = ",".join(str(v) for v in value)
+    if not isinstance(value, str):
+        raise ValueError(f"a model shape is a list of layer widths like 2,64,32,1 or [2, 64, 32, 1], got {value!r}")
+    parts = [p for p in value.strip().strip("[]").replace(",", " ").split()]
+    try:
+        return [int(p) for p in parts]
+    except ValueError:
+        raise ValueError(f"a model shape is a list of layer widths like 2,64,32,1 or [2, 64, 32, 1], got {value!r}") from None
 
 
 ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
@@ -259,6 +277,11 @@ class LearnerSettings(Section):
                                 "starts more learners than that, else no limit)")
     device: str = Field("auto", description="torch device: auto (cuda when available), cpu, cuda, cuda:1 ...")
 
+    @field_validator("model_shape", mode="before")
+    @classmethod
+    def _shape_as_typed(cls, value: Any) -> list[int]:
+        return parse_shape(value)
+
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:
         if self.algorithm == "centralized" and self.transport != "inproc":
@@ -452,6 +475,7 @@ class RunConfig(Section):
 
 
 COMMON_FIELDS = ("run_id", "key_prefix", "robots", "seed", "run_dir", "log_level")
+SECTION_NAMES = ("zenoh", "router", "world", "lidar", "learner", "observer", "recorder", "faults", "up")
 
 
 @dataclass(frozen=True)
@@ -576,6 +600,25 @@ DEFAULT_PRESET = "demo"
 
 # ----------------------------------------------------------------------------- loading
 
+# Variables under SWARMMAP_ that the launchers read and that are not config fields (every other
+# SWARMMAP_* variable must name a field, so that a misspelt one is refused, not ignored).
+LAUNCHER_VARIABLES: dict[str, str] = {
+    "SWARMMAP_UID": "compose.yaml: the user id the services run as",
+    "SWARMMAP_GID": "compose.yaml: the group id the services run as",
+    "SWARMMAP_RUNS": "compose.yaml: the host folder that holds the run directories (default ./runs)",
+    "SWARMMAP_SIF": "deploy/slurm: the Apptainer/Singularity image to run the services in",
+    "SWARMMAP_LEARNER_CPUS": "deploy/slurm/team.sbatch: CPUs per learner task",
+    "SWARMMAP_GPUS_PER_LEARNER": "deploy/slurm/team.sbatch: GPUs per learner task",
+    "SWARMMAP_ROUTER_PORT": "deploy/slurm/team.sbatch: the router's port",
+    "SWARMMAP_END_GRACE_S": "deploy/slurm/team.sbatch: how long the services get to leave once the run is over",
+}
+
+
+def did_you_mean(word: str, choices: typing.Iterable[str]) -> str:
+    """`` (did you mean 'learner'?)`` for the choice closest to ``word``, or "" when none is close."""
+    close = difflib.get_close_matches(str(word), list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     """A copy of ``base`` with ``over`` merged in, nested dicts merged key by key."""
@@ -592,14 +635,14 @@ def _set_path(tree: dict[str, Any], path: list[str], value: Any) -> None:
     for part in path[:-1]:
         tree = tree.setdefault(part, {})
         if not isinstance(tree, dict):
-            raise ConfigError(f"config error: {'.'.join(path)}: {part} is not a section")
+            raise ConfigError(f"config error:\n  {'.'.join(path)}: {part} is not a section")
     tree[path[-1]] = value
 
 
 def apply_override(tree: dict[str, Any], item: str) -> None:
     """Apply one ``--set SECTION.FIELD=VALUE`` (VALUE read as YAML) to a nested dict."""
     if "=" not in item:
-        raise ConfigError(f"config error: --set {item!r}: expected KEY=VALUE")
+        raise ConfigError(f"config error:\n  --set {item!r}: expected KEY=VALUE, e.g. --set learner.rounds=50")
     key, raw = item.split("=", 1)
     _set_path(tree, key.strip().split("."), _parse_scalar(raw))
 
@@ -616,30 +659,50 @@ def read_config_file(path: Path) -> dict[str, Any]:
     try:
         doc = yaml.safe_load(Path(path).read_text())
     except FileNotFoundError:
-        raise ConfigError(f"config error: config file {path} does not exist") from None
+        raise ConfigError(f"config error:\n  --config: config file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config error:\n  --config: {path} is a folder; name its config.yaml") from None
     except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"config error: config file {path} is not valid YAML: {exc}") from None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"config error:\n  --config: config file {path} is not valid YAML: {first}") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):
-        raise ConfigError(f"config error: config file {path} must hold a mapping, got {type(doc).__name__}")
+        raise ConfigError(f"config error:\n  --config: config file {path} must hold a mapping, got {type(doc).__name__}")
     return doc
 
 
+def env_names() -> dict[str, list[str]]:
+    """Every ``SWARMMAP_*`` variable that names a config field, with the field's path."""
+    names: dict[str, list[str]] = {}
+    for name, field in RunConfig.model_fields.items():
+        if _is_model(field.annotation):
+            for sub in field.annotation.model_fields:
+                names[f"{ENV_PREFIX}{name.upper()}__{sub.upper()}"] = [name, sub]
+        else:
+            names[f"{ENV_PREFIX}{name.upper()}"] = [name]
+    return names
+
+
 def env_overrides(environ: dict[str, str] | None = None) -> dict[str, Any]:
-    """``SWARMMAP_SEED=3`` -> {seed: 3}; ``SWARMMAP_LEARNER__ROUNDS=9`` -> {learner: {rounds: 9}}."""
+    """``SWARMMAP_SEED=3`` -> {seed: 3}; ``SWARMMAP_LEARNER__ROUNDS=9`` -> {learner: {rounds: 9}}.
+
+    A ``SWARMMAP_*`` variable that names no field (and is none of LAUNCHER_VARIABLES) is refused,
+    with the closest name."""
     environ = os.environ if environ is None else environ
+    names = env_names()
     tree: dict[str, Any] = {}
-    sections = {name for name, f in RunConfig.model_fields.items() if _is_model(f.annotation)}
-    for key, raw in environ.items():
-        if not key.startswith(ENV_PREFIX):
+    unknown = []
+    for key, raw in sorted(environ.items()):
+        if not key.startswith(ENV_PREFIX) or key in LAUNCHER_VARIABLES:
             continue
-        path = key[len(ENV_PREFIX) :].lower().split("__")
-        if path[0] not in RunConfig.model_fields:
-            continue  # not ours (e.g. SWARMMAP_HOME); unknown section fields are caught by validation
-        if path[0] in sections and len(path) != 2:
-            raise ConfigError(f"config error: {key}: name a field as {ENV_PREFIX}{path[0].upper()}__<FIELD>")
-        _set_path(tree, path, _parse_scalar(raw))
+        if key not in names:
+            unknown.append(f"  {key}: not a swarmmap setting{did_you_mean(key, [*names, *LAUNCHER_VARIABLES])}; a variable "
+                           f"names a field by its path, as {ENV_PREFIX}SEED or {ENV_PREFIX}LEARNER__ROUNDS")
+            continue
+        _set_path(tree, names[key], _parse_scalar(raw))
+    if unknown:
+        raise ConfigError("config error (environment):\n" + "\n".join(unknown) + "\n  unset the variable(s) or correct the name")
     return tree
 
 
@@ -647,14 +710,72 @@ def _is_model(annotation: Any) -> bool:
     return isinstance(annotation, type) and issubclass(annotation, BaseModel)
 
 
+def _model_at(loc: tuple) -> type[BaseModel] | None:
+    """The config model that holds the field at ``loc`` (a pydantic error location)."""
+    model: type[BaseModel] = RunConfig
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        if field is None or not _is_model(field.annotation):
+            return None
+        model = field.annotation
+    return model
+
+
+# Pydantic's words for a refused value, in the config's: (error type, what to say; {ctx} filled in).
+PLAIN_ERRORS = {
+    "missing": "is required",
+    "int_parsing": "must be a whole number", "int_type": "must be a whole number",
+    "int_from_float": "must be a whole number",
+    "float_parsing": "must be a number", "float_type": "must be a number", "finite_number": "must be a finite number",
+    "bool_parsing": "must be true or false", "bool_type": "must be true or false",
+    "string_type": "must be text", "list_type": "must be a list, e.g. [a, b]",
+    "model_type": "must be a section: a mapping of its fields", "dict_type": "must be a mapping",
+    "greater_than": "must be greater than {gt}", "greater_than_equal": "must be at least {ge}",
+    "less_than": "must be less than {lt}", "less_than_equal": "must be at most {le}",
+    "string_pattern_mismatch": "must match the pattern {pattern}",
+    "path_type": "must be a path", "too_short": "must hold at least {min_length} item(s)",
+    "too_long": "must hold at most {max_length} item(s)",
+}
+
+
+def plain_error(err: dict) -> str:
+    """One refused field in plain words: ``learner.optimizer: must be 'adam', 'adamw' or 'sgd' (got 'adan')``."""
+    loc = tuple(err["loc"])
+    where = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".") or "config"
+    kind, ctx, given = err["type"], err.get("ctx") or {}, err.get("input")
+    if kind == "extra_forbidden":
+        model = _model_at(loc)
+        section = ".".join(str(p) for p in loc[:-1])
+        fields = list(model.model_fields) if model is not None else []
+        hint = did_you_mean(loc[-1], fields) or (f"; swarmmap {section} --help lists its fields" if section in SECTION_NAMES
+                                                 else f"; the sections are {', '.join(SECTION_NAMES)}" if not section else "")
+        return f"  {where}: unknown {'field' if section else 'field or section'}{hint}"
+    hint = ""
+    if kind == "literal_error":
+        text = f"must be {ctx.get('expected', '')}"
+        if isinstance(given, str):
+            hint = did_you_mean(given, [c.strip(" '") for c in str(ctx.get("expected", "")).replace(" or ", ",").split(",")])
+    elif kind in ("value_error", "assertion_error"):
+        return f"  {where}: {ctx.get('error', err['msg'])}"  # the validator's own words name the value
+    elif kind in PLAIN_ERRORS:
+        text = PLAIN_ERRORS[kind].format(**ctx)
+    else:
+        text = err["msg"][:1].lower() + err["msg"][1:]
+    got = f" (got {given!r})" if kind != "missing" and given is not None and not isinstance(given, dict) else ""
+    return f"  {where}: {text}{got}{hint}"
+
+
 def format_validation_error(exc: ValidationError) -> str:
-    """One line per refused field: ``learner.optimizer: Input should be 'adam', ... (got 'adan')``."""
-    lines = []
-    for err in exc.errors():
-        where = ".".join(str(p) for p in err["loc"]) or "config"
-        got = f" (got {err['input']!r})" if err["type"] not in ("missing",) and not isinstance(err.get("input"), dict) else ""
-        lines.append(f"  {where}: {err['msg']}{got}")
-    return "config error:\n" + "\n".join(lines)
+    """One line per refused field, in plain words (no pydantic dump, no links)."""
+    return "config error:\n" + "\n".join(plain_error(err) for err in exc.errors())
+
+
+def validate_config(doc: dict[str, Any]) -> RunConfig:
+    """``doc`` as a RunConfig; a refused value raises ConfigError in plain words."""
+    try:
+        return RunConfig.model_validate(doc)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc)) from None
 
 
 def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = None,
@@ -667,15 +788,13 @@ def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = Non
     merged: dict[str, Any] = {}
     if name is not None:
         if name not in PRESETS:
-            raise ConfigError(f"config error:\n  preset: unknown preset {name!r}; allowed: {', '.join(PRESETS)}")
+            raise ConfigError(f"config error:\n  preset: unknown preset {name!r}{did_you_mean(name, PRESETS)}; "
+                              f"allowed: {', '.join(PRESETS)}")
         merged = deep_merge(merged, PRESETS[name])
         merged["preset"] = name
     for layer in (file_doc, env_doc, cli):
         merged = deep_merge(merged, layer)
-    try:
-        return RunConfig.model_validate(merged)
-    except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc)) from None
+    return validate_config(merged)
 
 
 # ----------------------------------------------------------------------------- command line
@@ -689,43 +808,92 @@ def _base_type(annotation: Any) -> Any:
     return annotation
 
 
-def add_model_arguments(parser: argparse.ArgumentParser, model: type[BaseModel], dest_prefix: str,
-                        flag_prefix: str = "", skip: tuple[str, ...] = ()) -> None:
-    """Add one ``--flag`` per field of ``model``; values are validated later by pydantic."""
+def field_info(path: str) -> tuple[type[BaseModel], str]:
+    """(the model that holds it, the field name) of a dotted config path, ``learner.rounds`` or ``robots``."""
+    *section, name = path.split(".")
+    model: type[BaseModel] = RunConfig.model_fields[section[0]].annotation if section else RunConfig
+    if name not in model.model_fields:
+        raise KeyError(path)
+    return model, name
+
+
+def default_text(value: Any) -> str:
+    """`` [default: 7]`` for help texts; "" when there is nothing to show (None, an empty list)."""
+    if value is None or value == [] or value == "":
+        return ""
+    if isinstance(value, list):
+        value = ",".join(map(str, value)) if all(isinstance(v, int) for v in value) else " ".join(map(str, value))
+    return f" [default: {value}]".replace("%", "%%")
+
+
+def add_field_argument(group: argparse._ActionsContainer, path: str, flag: str | None = None, *,
+                       defaults: RunConfig | None = None, help: str | None = None, shown_default: str | None = None) -> None:
+    """Add the ``--flag`` of the config field at ``path`` (e.g. ``learner.rounds`` as ``--rounds``):
+    its description, the default a plain run uses (from ``defaults``, e.g. the default preset's
+    resolved config), and a metavar listing a choice's values; values are validated by pydantic."""
+    model, name = field_info(path)
+    field = model.model_fields[name]
+    head = path.split(".")[0] if "." in path else "top"
+    flag = flag or "--" + name.replace("_", "-")
+    base = _base_type(field.annotation)
+    if defaults is not None:
+        default = getattr(getattr(defaults, head) if head != "top" else defaults, name)
+    else:
+        default = field.get_default(call_default_factory=True)
+    shown = f" [default: {shown_default}]" if shown_default else default_text(default)
+    text = (help or field.description or "").replace("%", "%%") + shown
+    kwargs: dict[str, Any] = {"dest": f"{head}.{name}", "default": argparse.SUPPRESS, "help": text, "metavar": name.upper()}
+    if base is bool:
+        kwargs["action"] = argparse.BooleanOptionalAction
+        del kwargs["metavar"]
+    elif typing.get_origin(base) is list:
+        kwargs["nargs"] = "+"
+    elif typing.get_origin(base) is Literal:
+        kwargs["metavar"] = "{" + ",".join(map(str, typing.get_args(base))) + "}"
+    group.add_argument(flag, **kwargs)
+
+
+def add_model_arguments(parser: argparse._ActionsContainer, model: type[BaseModel], section: str | None,
+                        flag_prefix: str = "", skip: typing.Iterable[str] = (), defaults: RunConfig | None = None,
+                        shown: dict[str, str] | None = None) -> None:
+    """Add one ``--flag`` per field of ``model`` (the RunConfig's top level when ``section`` is None)."""
     for name, field in model.model_fields.items():
         if name in skip or _is_model(field.annotation):
             continue
-        flag = "--" + flag_prefix + name.replace("_", "-")
-        base = _base_type(field.annotation)
-        default = field.get_default(call_default_factory=True)
-        help_text = (field.description or "") + ("" if default is None else f" [default: {default}]")
-        kwargs: dict[str, Any] = {"dest": f"{dest_prefix}{name}", "default": argparse.SUPPRESS, "help": help_text,
-                                  "metavar": name.upper()}
-        if base is bool:
-            kwargs["action"] = argparse.BooleanOptionalAction
-            del kwargs["metavar"]
-        elif typing.get_origin(base) is list:
-            kwargs["nargs"] = "+"
-            kwargs["metavar"] = name.upper()
-        elif typing.get_origin(base) is Literal:
-            kwargs["metavar"] = "{" + ",".join(map(str, typing.get_args(base))) + "}"
-        parser.add_argument(flag, **kwargs)
+        path = f"{section}.{name}" if section else name
+        add_field_argument(parser, path, "--" + flag_prefix + name.replace("_", "-"), defaults=defaults,
+                           shown_default=(shown or {}).get(path))
 
 
-def add_common_arguments(parser: argparse.ArgumentParser, section: str | None) -> None:
-    """The options every service takes: config file, preset, run, Zenoh, ``--set``, and its section."""
+ADVANCED_TITLE = "advanced: Zenoh transport and TLS"
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, section: str | None, *, defaults: RunConfig | None = None,
+                         skip: typing.Iterable[str] = (), shown: dict[str, str] | None = None,
+                         more: typing.Iterable[tuple[str, str, str | None]] = ()) -> argparse._ArgumentGroup:
+    """The options every service takes: config file, preset, run, ``--set``, its section, and
+    Zenoh (in an advanced group); ``skip`` names top-level fields already added (everyday flags),
+    ``more`` other fields for the run group as (path, flag, help or None). Returns the advanced
+    group, for a command's own transport flags."""
+    skip = set(skip)
     g = parser.add_argument_group("run")
-    g.add_argument("--config", type=Path, default=None, help="YAML config file (e.g. a run's config.yaml)")
-    g.add_argument("--preset", dest="top.preset", default=argparse.SUPPRESS, metavar="{" + ",".join(PRESETS) + "}",
-                   help="named preset applied under the config file")
-    add_model_arguments(g, RunConfig, "top.", skip=("preset",))
+    g.add_argument("--config", type=Path, default=None, help="YAML config file, e.g. a run's config.yaml (under the "
+                                                             "environment and the command line)")
+    if "preset" not in skip:
+        g.add_argument("--preset", dest="top.preset", default=argparse.SUPPRESS, metavar="{" + ",".join(PRESETS) + "}",
+                       help="named preset applied under the config file")
+    add_model_arguments(g, RunConfig, None, skip={"preset", *skip}, defaults=defaults, shown=shown)
+    for path, flag, text in more:
+        add_field_argument(g, path, flag, defaults=defaults, help=text)
     g.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any field by its dotted path, e.g. --set learner.lr_start=0.01 (repeatable)")
-    z = parser.add_argument_group("zenoh")
-    add_model_arguments(z, ZenohSettings, "zenoh.", flag_prefix="zenoh-")
+                   help="override any field by its dotted path, e.g. --set learner.lr_start=0.01 or "
+                        "--set learner.model_shape=[2,64,32,1] (repeatable)")
     if section is not None:
         s = parser.add_argument_group(section)
-        add_model_arguments(s, RunConfig.model_fields[section].annotation, f"{section}.")
+        add_model_arguments(s, RunConfig.model_fields[section].annotation, section, defaults=defaults, shown=shown)
+    z = parser.add_argument_group(ADVANCED_TITLE)
+    add_model_arguments(z, ZenohSettings, "zenoh", flag_prefix="zenoh-", defaults=defaults)
+    return z
 
 
 def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = None,

@@ -16,6 +16,7 @@ naming the file.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import re
 from pathlib import Path
@@ -26,11 +27,12 @@ from PIL import Image, UnidentifiedImageError
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
-from swarmmap.shared.config import WorldSettings
+from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, procedural
-from swarmmap.shared.paths import check_paths, interpolate_dinno
+from swarmmap.shared.paths import check_paths, interpolate_dinno, path_length, plan_paths
 
 MAX_IMAGE_PIXELS = 50_000_000
+log = logging.getLogger(__name__)
 
 
 def plan_reference(spec: str) -> dict[str, str]:
@@ -251,4 +253,28 @@ def load_waypoints(folder: Path, plan: FloorPlan) -> list[np.ndarray]:
         except PlanError as exc:
             raise PlanError(f, exc.problem.replace("path 0: ", "")) from None
         paths.append(arr)
+    return paths
+
+
+MIN_PATH_M = 0.5  # a planned path shorter than this is a robot standing still
+
+
+def robot_paths(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid) -> list[np.ndarray]:
+    """The plan's own waypoint paths (one per robot), or paths planned through free space; a
+    plan with fewer waypoint paths than robots, or none a robot can drive, raises PlanError."""
+    if plan.paths is not None:
+        if len(plan.paths) < cfg.robots:
+            raise PlanError(cfg.world.waypoints, f"{len(plan.paths)} waypoint paths for {cfg.robots} robots: run at most "
+                                                 f"{len(plan.paths)} robots (--robots), or give a folder with a path per robot")
+        return plan.paths[: cfg.robots]
+    paths = plan_paths(plan, grid, cfg.robots, cfg.seed, cfg.world.rooms_per_robot, cfg.world.robot_clearance_m,
+                       cfg.world.coverage_spacing_m, cfg.world.rooms)
+    lengths = [path_length(p) for p in paths]
+    if max(lengths) < MIN_PATH_M:
+        raise PlanError(plan.source, f"no usable path: the planned paths are {', '.join(f'{v:.1f}' for v in lengths)} m "
+                                     f"(the plan has {len(plan.rooms)} room(s) a robot can reach); a robot that does not "
+                                     "move sees one place only")
+    still = [r for r, v in enumerate(lengths) if v < MIN_PATH_M]
+    if still:
+        log.warning("robot(s) %s have no path to drive (fewer reachable rooms than robots): each sees one place only", still)
     return paths

@@ -6,8 +6,10 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,7 @@ from swarmmap.services.world import build_plan
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.models import predict
 from swarmmap.shared.networks import load_model
-from tests.conftest import SWARMMAP, clean_env, wait_until
+from tests.conftest import PROMPT_S, SWARMMAP, clean_env, wait_until
 from tests.e2e.mapcheck import observed_agreement
 
 pytestmark = pytest.mark.e2e
@@ -90,6 +92,41 @@ def test_a_smoke_run_leaves_an_overview_and_ros_maps_at_the_ground_truths_resolu
         assert Image.open(run_dir / "maps" / ros["image"]).size == truth.shape[::-1]
 
 
+def test_the_console_ends_with_where_everything_went_and_what_to_run_next(smoke_run):
+    """Phases on the console, then the closing block: each robot's final val_bce as in the
+    summary, the team's mean, the run directory and the commands to copy."""
+    run_dir, proc = smoke_run
+    for phase in ("plan procedural-2x2-seed0 (procedural)", "starting 10 services", "traversal done:",
+                  "training: 3 learner(s), 20 rounds", "training: round 20 of 20 (100%)"):
+        assert phase in proc.stderr, phase
+    summary = json.loads((run_dir / "summary.json").read_text())
+    finals = [summary["learners"][r]["final_val_bce"] for r in "012"]
+    block = proc.stdout[proc.stdout.index(f"run {summary['run_id']}: ok"):]
+    assert "  final val_bce  " + "  ".join(f"robot {r} {v:.4f}" for r, v in enumerate(finals)) in block
+    assert f"team mean      {sum(finals) / 3:.4f} over 3 robot(s)" in block and f"run directory  {run_dir}" in block
+    assert f"rerun {run_dir / 'recording.rrd'}" in block and f"swarmmap experiment score {run_dir} --ensemble" in block
+    recorder = (run_dir / "logs" / "recorder-0.log").read_text()
+    for phase in ("every learner is alive (3)", "traversal done:", "training: round 20 of 20", "final val_bce: robot 0"):
+        assert phase in recorder, phase
+
+
+def test_the_run_tools_answer_for_a_finished_run_in_seconds(smoke_run, tmp_path):
+    run_dir, _ = smoke_run
+    start = time.monotonic()
+    status = subprocess.run([*SWARMMAP, "status", str(run_dir)], capture_output=True, text=True, timeout=30, env=clean_env())
+    assert status.returncode == 0 and time.monotonic() - start < PROMPT_S
+    assert "not running; finished ok at" in status.stdout and status.stdout.count("final val_bce") == 3
+    runs = subprocess.run([*SWARMMAP, "runs", str(run_dir.parent)], capture_output=True, text=True, timeout=30, env=clean_env())
+    row = next(line.split() for line in runs.stdout.splitlines()[1:] if line.split()[0] == run_dir.name)
+    assert row[1:4] == ["ok", "3", "20"]
+    logs = subprocess.run([*SWARMMAP, "logs", str(run_dir), "world-0"], capture_output=True, text=True, timeout=30, env=clean_env())
+    assert logs.returncode == 0 and "traversal done" in logs.stdout
+    out = tmp_path / "curves.png"
+    cmp = subprocess.run([*SWARMMAP, "compare", str(run_dir), "--out", str(out)], capture_output=True, text=True, timeout=60,
+                         env=clean_env())
+    assert cmp.returncode == 0 and out.stat().st_size > 0 and "final mean val_bce" in cmp.stdout
+
+
 def metric_rows(run_dir: Path) -> list[dict]:
     """The complete rows of metrics.csv (the file may be mid-write while the run goes on)."""
     path = run_dir / "metrics.csv"
@@ -115,13 +152,17 @@ def test_status_lists_live_services_and_ctrl_c_stops_everything(tmp_path):
         def status_shows_learners() -> bool:
             if not (run_dir / "config.yaml").exists():
                 return False
-            res = subprocess.run([*SWARMMAP, "status", "--config", str(run_dir / "config.yaml"), "--window", "1"],
+            res = subprocess.run([*SWARMMAP, "status", str(run_dir), "--window", "1"],
                                  capture_output=True, text=True, timeout=60, env=clean_env())
             out["text"] = res.stdout
-            return all(f"learner    {i}" in res.stdout for i in range(3)) and "state" in res.stdout
+            return all(f"learner    {i}" in res.stdout for i in range(3)) and "state" in res.stdout and \
+                all(re.search(rf"learner +{i} +round +\d+ +val_bce \d", res.stdout) for i in range(3))
 
         assert wait_until(status_shows_learners, 120, interval=0.5), out["text"]
         assert "lidar" in out["text"] and "router" in out["text"] and "world" in out["text"]
+        lines = out["text"].splitlines()
+        listed = lines[1:next(i for i, line in enumerate(lines) if line.startswith("learners"))]
+        assert f"{len(listed)} service(s) alive" in lines[0], out["text"]
         # A State travels before the round's Metrics are recorded: interrupt once rows are on disk.
         assert wait_until(lambda: metric_rows(run_dir), 120, interval=0.5), "no Metrics were recorded"
         before = metric_rows(run_dir)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
@@ -48,3 +49,53 @@ def test_up_gives_learners_compute_slots_when_they_outnumber_the_cores(tmp_path)
     assert not Launcher(inproc, threading.Event()).cfg.learner.compute_slots
     off = RunConfig.model_validate({"run_dir": str(tmp_path / "d"), "robots": cores + 1, "learner": {"compute_slots": 0}})
     assert Launcher(off, threading.Event()).cfg.learner.compute_slots == 0
+
+
+def service(tmp_path, name: str, code: str) -> Child:
+    """A real process standing in for one service, its output in its log as up keeps it."""
+    log_path = tmp_path / f"{name}.log"
+    with log_path.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=out, stderr=subprocess.STDOUT)
+    service_name, ident = name.rsplit("-", 1)
+    return Child(service_name, int(ident), proc, log_path)
+
+
+def test_a_service_that_refuses_its_settings_ends_the_run_at_once_with_its_reason_in_the_summary(tmp_path):
+    """Status 2 is a refusal that would only repeat: ``up`` stops waiting for the recorder at
+    once (not after FAILURE_GRACE_S) and summary.json says which service refused and why."""
+    cfg = RunConfig(run_dir=tmp_path / "run", up=UpSettings(stop_grace_s=2.0))
+    launcher = Launcher(cfg, threading.Event())
+    launcher.run_dir.mkdir()
+    recorder = service(tmp_path, "recorder-0", "import time; time.sleep(120)")
+    world = service(tmp_path, "world-0", "import sys; print('2030-01-01 10:00:00,000 ERROR world: floor plan refused: "
+                                         "plan.svg: file does not exist'); sys.exit(2)")
+    launcher.children = [recorder, world]
+    try:
+        start = time.monotonic()
+        status = launcher.watch(recorder)
+        took = time.monotonic() - start
+        assert status == 1 and took < 10, f"watch returned {status} after {took:.1f} s"
+        launcher.shutdown()
+        launcher.complete_summary(took, status)
+    finally:
+        for c in (recorder, world):
+            if c.proc.poll() is None:
+                c.proc.kill()
+                c.proc.wait()
+    summary = json.loads((launcher.run_dir / "summary.json").read_text())
+    assert not summary["ok"] and summary["status"] == 1
+    assert summary["reason"] == "world-0 refused to run (exit status 2): floor plan refused: plan.svg: file does not exist"
+    assert summary["services"]["world-0"]["exit_code"] == 2 and summary["services"]["world-0"]["restarts"] == 0
+
+
+def test_the_reason_is_the_services_last_error_without_time_stamps():
+    from swarmmap.services.launcher import last_error
+
+    record = ["2030-01-01 10:00:00,000 INFO learner: robot 1: 900 points",
+              "2030-01-01 10:00:01,000 ERROR learner: robot 1: cannot read checkpoint c/robot-1.pt: load failed.",
+              "Details on a second line", "2030-01-01 10:00:02,000 INFO learner: stopped"]
+    assert last_error(record) == "robot 1: cannot read checkpoint c/robot-1.pt: load failed. Details on a second line"
+    refused = ["config error:", "  zenoh.secrets: learner-0 has no credentials in s", "  create them with swarmmap secrets"]
+    assert last_error(refused) == "config error: zenoh.secrets: learner-0 has no credentials in s create them with swarmmap secrets"
+    crash = ["Traceback (most recent call last):", '  File "x.py", line 1, in <module>', "ValueError: bad value", ""]
+    assert last_error(crash) == "ValueError: bad value"

@@ -100,3 +100,39 @@ def test_an_overview_that_cannot_be_drawn_is_logged_and_never_fails_the_run(tmp_
     draw_overview(RunConfig(run_dir=tmp_path), {})
     assert "could not draw" in caplog.text and str(tmp_path / "overview.png") in caplog.text
     assert not (tmp_path / "overview.png").exists()
+
+
+def test_the_log_says_each_phase_once_and_a_progress_line_every_so_often(caplog):
+    import logging
+
+    from swarmmap.services.recorder import PhaseLog
+
+    tracker, phases = RunTracker(2), PhaseLog(robots=2, rounds=10, every=10.0)
+    with caplog.at_level(logging.INFO, logger="recorder"):
+        phases.tick(tracker, now=0.0)
+        for i in range(2):
+            tracker.on_alive("learner", str(i), True)
+        phases.tick(tracker, now=1.0)
+        for i in range(2):
+            m = metrics(i, 5)
+            tracker.on_metrics(m)
+            phases.team.add(m, now=2.0)
+        phases.tick(tracker, now=2.0)
+        phases.tick(tracker, now=5.0)  # too soon for another line
+        phases.tick(tracker, now=12.5)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0] == "every learner is alive (2); waiting for the world to drive"
+    assert lines[1] == "training: the learners have their points"
+    assert lines[2].startswith("training: round 5 of 10 (50%), val_bce mean 0.5000") and lines[3].startswith("training: round 5")
+    assert len(lines) == 4
+
+
+def test_the_summary_says_when_the_run_started_and_finished(tmp_path):
+    import time
+
+    from swarmmap.services.recorder import summary
+    from swarmmap.shared.config import resolve
+
+    rec = MetricsRecorder(tmp_path / "metrics.csv")
+    doc = summary(resolve({"robots": 1}, environ={}), rec, True, "all 1 learners finished", 30.0, started=1000.0)
+    assert doc["started"] == 1000.0 and abs(doc["finished"] - time.time()) < 5

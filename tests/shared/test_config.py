@@ -5,7 +5,16 @@ from __future__ import annotations
 import pytest
 
 from swarmmap.services.cli import build_parser
-from swarmmap.shared.config import PRESETS, ConfigError, RunConfig, config_from_args, resolve
+from swarmmap.shared.config import (
+    LAUNCHER_VARIABLES,
+    PRESETS,
+    ConfigError,
+    RunConfig,
+    config_from_args,
+    env_names,
+    parse_shape,
+    resolve,
+)
 
 
 def load(argv, environ=None, preset=None) -> RunConfig:
@@ -115,3 +124,64 @@ def test_dinno_fast_keeps_dinnos_setting_and_changes_only_the_schedule():
     changed = {k for k, v in fast.learner.model_dump().items() if published.learner.model_dump()[k] != v}
     assert changed == {"rounds", "batch_size", "lr_start", "lr_finish", "rho_init"}
     assert published.learner.rho_init == 0.3 and published.learner.batch_size == 12500  # DiNNO's, as published
+
+
+def test_a_misspelt_environment_variable_is_refused_naming_it_and_the_closest_name():
+    with pytest.raises(ConfigError) as info:
+        load(["up"], {"SWARMMAP_LERNER__ROUNDS": "3"})
+    assert "SWARMMAP_LERNER__ROUNDS" in info.value.message and "did you mean 'SWARMMAP_LEARNER__ROUNDS'" in info.value.message
+    with pytest.raises(ConfigError, match="SWARMMAP_LEARNER__ROUDS.*SWARMMAP_LEARNER__ROUNDS"):
+        load(["learner"], {"SWARMMAP_LEARNER__ROUDS": "3"})
+    with pytest.raises(ConfigError, match="SWARMMAP_SEDE"):
+        load(["world"], {"SWARMMAP_SEDE": "1"})
+
+
+def test_the_launchers_own_variables_are_accepted_and_are_no_config_fields():
+    env = {name: "1" for name in LAUNCHER_VARIABLES}
+    assert {"SWARMMAP_UID", "SWARMMAP_GID", "SWARMMAP_RUNS"} <= env.keys()
+    assert load(["up"], {**env, "SWARMMAP_LEARNER__ROUNDS": "9"}).learner.rounds == 9
+    assert not set(LAUNCHER_VARIABLES) & set(env_names()), "a launcher variable would also set a config field"
+
+
+def test_unknown_fields_and_sections_name_the_closest_one(tmp_path):
+    with pytest.raises(ConfigError, match=r"lerner: unknown .*did you mean 'learner'"):
+        load(["up", "--set", "lerner.rounds=5"])
+    with pytest.raises(ConfigError, match=r"learner.rouds: unknown field \(did you mean 'rounds'\?\)"):
+        load(["up", "--set", "learner.rouds=5"])
+    f = tmp_path / "c.yaml"
+    f.write_text("world:\n  floorplna: procedural\n")
+    with pytest.raises(ConfigError, match="world.floorplna: .*did you mean 'floorplan'"):
+        load(["world", "--config", str(f)])
+    with pytest.raises(ConfigError, match="did you mean 'smoke'"):
+        load(["up", "--preset", "smok"])
+    with pytest.raises(ConfigError, match=r"'adam', 'adamw' or 'sgd' \(got 'adan'\) \(did you mean 'adam'\?\)"):
+        load(["learner", "--optimizer", "adan"])
+
+
+def test_refusals_are_in_plain_words_without_pydantic_dumps_or_links():
+    for argv in (["up", "--set", "faults.link_success=1.5"], ["up", "--rounds", "many"], ["up", "--set", "lerner.rounds=5"],
+                 ["up", "--set", "learner.model_shape=[3,64,1]"], ["up", "--robots", "0"]):
+        with pytest.raises(ConfigError) as info:
+            load(argv)
+        text = info.value.message
+        assert "http" not in text and "validation error" not in text and "Input should" not in text, text
+        assert "type=" not in text and "Value error" not in text, text
+    with pytest.raises(ConfigError, match=r"faults.link_success: must be at most 1.0 \(got 1.5\)"):
+        load(["up", "--set", "faults.link_success=1.5"])
+    with pytest.raises(ConfigError, match=r"learner.rounds: must be a whole number \(got 'many'\)"):
+        load(["up", "--rounds", "many"])
+
+
+def test_a_model_shape_has_one_syntax_on_the_command_line_in_the_environment_and_in_files(tmp_path):
+    want = [2, 64, 32, 1]
+    assert load(["up", "--set", "learner.model_shape=[2,64,32,1]"]).learner.model_shape == want
+    assert load(["up", "--set", "learner.model_shape=2,64,32,1"]).learner.model_shape == want
+    assert load(["learner", "--model-shape", "2", "64", "32", "1"]).learner.model_shape == want
+    assert load(["learner", "--model-shape", "2,64,32,1"]).learner.model_shape == want
+    assert load(["up"], {"SWARMMAP_LEARNER__MODEL_SHAPE": "2,64,32,1"}).learner.model_shape == want
+    f = tmp_path / "c.yaml"
+    f.write_text("learner:\n  model_shape: [2, 64, 32, 1]\n")
+    assert load(["learner", "--config", str(f)]).learner.model_shape == want
+    assert parse_shape("[2, 64, 32, 1]") == parse_shape("2,64,32,1") == parse_shape(["2", "64", "32", "1"]) == want
+    with pytest.raises(ConfigError, match=r"learner.model_shape: a model shape is a list of layer widths like 2,64,32,1"):
+        load(["up", "--set", "learner.model_shape=2,sixty,1"])

@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from swarmmap.services.experiments import parse_shape, regularization_cells
+from swarmmap.services.experiments.regularization import parse_shape, regularization_cells
 from swarmmap.shared.config import ConfigError, resolve
 
 
