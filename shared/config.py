@@ -57,6 +57,10 @@ def parse_shape(value: Any) -> list[int]:
 
 
 ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
+# learner.consensus: the consensus rules (services/learner/consensus/, whose registry names the same)
+ConsensusKind = Literal["dinno", "ramen", "sigma"]
+# learner.algorithm: the learning rules (services/learner/registry.py names the same)
+AlgorithmKind = Literal["dinno", "dsgd", "dsgt", "individual", "centralized"]
 MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
 # The learner models whose maps have a standard deviation (stochastic networks); a FourierNet's have none.
 STD_MODELS = ("bnn", "dropout")
@@ -181,7 +185,7 @@ class LearnerSettings(Section):
     lr_schedule: Literal["constant", "linear", "log"] = Field("log", description="primal learning-rate schedule")
     rho_init: float = Field(0.3, ge=0, description="initial ADMM penalty rho")
     rho_growth: float = Field(1.0004, ge=1.0, description="rho is multiplied by this each round")
-    algorithm: Literal["dinno", "dsgd", "dsgt", "individual", "centralized"] = Field(
+    algorithm: AlgorithmKind = Field(
         "dinno", description="DiNNO, or a baseline: DiNNO's DSGD and DSGT, individual (no communication), "
                              "centralized (one model on every robot's data; needs transport inproc)")
     graph: Literal["complete", "ring", "file", "disk"] = Field(
@@ -241,7 +245,7 @@ class LearnerSettings(Section):
     resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
     inbox_limit: int = Field(64, ge=4, description="messages that may wait from any one neighbour; a flood beyond this is "
                                                    "dropped (Algorithm 1 resends what an honest neighbour lost)")
-    consensus: Literal["dinno", "ramen", "sigma"] = Field(
+    consensus: ConsensusKind = Field(
         "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
                              "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")
     consensus_min_weight: float = Field(
