@@ -1,0 +1,117 @@
+"""Robot ids claimed at start, for per-robot services that all look alike (compose's replicas
+of one lidar service and one learner service).
+
+With ``SWARMMAP_ROBOT_CLAIMS=FOLDER`` in its environment (compose sets ``RUN_DIR/claims``), a
+lidar streamer or learner started without ``--robot`` (and outside SLURM) takes the lowest
+robot id that no other holder has taken for its service. The claims are ``FOLDER/<service>.json``
+(holder -> robot id), read and written under an exclusive ``flock``, so replicas that start at
+once get distinct ids. The holder is the host name, which in a container is the container's
+id: a container that restarts gets its own id back, and one more than the run has robots is
+refused. Outside containers, processes that share a host name share a claim: give them
+``--robot`` instead.
+
+``python -m swarmmap.services.claim start`` is the first step of a compose run (the recorder's
+container runs it before the recorder, see deploy/docker/entrypoint.sh): from the same
+environment as every service, it refuses a run directory that holds a run with other settings
+(as ``swarmmap up`` does), writes the run's ``config.yaml`` and credentials, and forgets the
+claims of the containers of an earlier ``up`` of the same run.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import socket
+import sys
+from pathlib import Path
+
+from swarmmap.shared.atomic import atomic_write_text
+from swarmmap.shared.config import ConfigError, fail, resolve
+from swarmmap.shared.runtime import setup_logging
+
+CLAIMS_ENV = "SWARMMAP_ROBOT_CLAIMS"
+
+log = logging.getLogger("claim")
+
+
+class ClaimError(Exception):
+    """No robot id is left for this holder."""
+
+
+def claim_robot(folder: Path, service: str, robots: int, holder: str | None = None) -> int:
+    """The robot id ``holder`` (default: this host's name) holds for ``service``, claimed now
+    if it holds none: the lowest of ``0..robots-1`` that nobody holds."""
+    holder = holder or socket.gethostname()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{service}.json"
+    with open(folder / f".{service}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+        claims: dict[str, int] = json.loads(path.read_text()) if path.exists() else {}
+        robot = claims.get(holder)
+        if robot is None or not 0 <= robot < robots:
+            free = sorted(set(range(robots)) - set(claims.values()))
+            if not free:
+                raise ClaimError(f"all {robots} robot ids of {service} are held ({path}: {json.dumps(claims)}); "
+                                 f"more {service} containers than robots? (SWARMMAP_ROBOTS={robots})")
+            robot = claims[holder] = free[0]
+            atomic_write_text(path, json.dumps(claims, indent=1) + "\n")
+    log.info("%s %s serves robot %d (claims in %s)", service, holder, robot, path)
+    return robot
+
+
+def claimed_robot(folder: str, field: str, robots: int) -> int:
+    """The robot of the service whose robot field is ``field`` (``learner.robot``), claimed in
+    ``folder``; stops the service with a message naming the field when none is left."""
+    try:
+        return claim_robot(Path(folder), field.split(".")[0], robots)
+    except (ClaimError, OSError, ValueError) as exc:  # ValueError: a claims file that is not JSON
+        fail(f"config error:\n  {field}: no robot id to claim in {folder} ({CLAIMS_ENV}): {exc}")
+
+
+def forget_claims(folder: Path) -> None:
+    """Drop every claim in ``folder`` (a new ``up``: its containers claim afresh)."""
+    for path in folder.glob("*.json"):
+        path.unlink()
+
+
+def start(environ: dict[str, str] | None = None) -> int:
+    """Compose's first step of a run (see the module's docstring); returns the exit status."""
+    from swarmmap.services.launcher import other_run_in, prepare, write_config
+    from swarmmap.shared.floorplan import PlanError
+    from swarmmap.shared.recording import RecordingError
+
+    environ = os.environ if environ is None else environ
+    cfg = resolve(environ=environ)
+    setup_logging(cfg.log_level, "start")
+    if cfg.run_dir is None:
+        fail("config error:\n  run_dir: the start of a run needs its run directory (SWARMMAP_RUN_DIR)")
+    try:
+        cfg = prepare(cfg)
+    except (RecordingError, PlanError) as exc:
+        log.error("%s", exc)
+        return 2
+    if (why := other_run_in(cfg)) is not None:
+        fail(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
+    if claims := environ.get(CLAIMS_ENV):
+        forget_claims(Path(claims))
+    log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m swarmmap.services.claim start``."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv != ["start"]:
+        print("usage: python -m swarmmap.services.claim start", file=sys.stderr)
+        return 2
+    try:
+        return start()
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
