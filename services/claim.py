@@ -1,20 +1,21 @@
 """Robot ids claimed at start, for per-robot services that all look alike (compose's replicas
-of one lidar service and one learner service).
+of one lidar service and one learner service), and compose's start of a run.
 
-With ``SWARMMAP_ROBOT_CLAIMS=FOLDER`` in its environment (compose sets ``RUN_DIR/claims``), a
-lidar streamer or learner started without ``--robot`` (and outside SLURM) takes the lowest
-robot id that no other holder has taken for its service. The claims are ``FOLDER/<service>.json``
-(holder -> robot id), read and written under an exclusive ``flock``, so replicas that start at
-once get distinct ids. The holder is the host name, which in a container is the container's
-id: a container that restarts gets its own id back, and one more than the run has robots is
-refused. Outside containers, processes that share a host name share a claim: give them
-``--robot`` instead.
+With ``SWARMMAP_ROBOT_CLAIMS=FOLDER`` in its environment (compose: a volume shared by the
+run's containers), a lidar streamer or learner started without ``--robot`` (and outside SLURM)
+takes the lowest robot id that no other holder has taken for its service. The claims are
+``FOLDER/<service>.json`` (holder -> robot id), read and written under an exclusive ``flock``,
+so replicas that start at once get distinct ids. The holder is the host name, which in a
+container is the container's id: a container that restarts gets its own id back, and one more
+than the run has robots is refused. Outside containers, processes that share a host name share
+a claim: give them ``--robot`` instead.
 
 ``python -m swarmmap.services.claim start`` is the first step of a compose run (the recorder's
 container runs it before the recorder, see deploy/docker/entrypoint.sh): from the same
 environment as every service, it refuses a run directory that holds a run with other settings
-(as ``swarmmap up`` does), writes the run's ``config.yaml`` and credentials, and forgets the
-claims of the containers of an earlier ``up`` of the same run.
+(as ``swarmmap up`` does), writes the run's ``config.yaml`` and credentials, forgets the claims
+of the containers of an earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or
+why not), which every other container of the run reads before it starts its service.
 """
 
 from __future__ import annotations
@@ -77,27 +78,43 @@ def forget_claims(folder: Path) -> None:
 
 
 def start(environ: dict[str, str] | None = None) -> int:
-    """Compose's first step of a run (see the module's docstring); returns the exit status."""
+    """Compose's first step of a run (see the module's docstring); returns the exit status and
+    leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start."""
+    environ = os.environ if environ is None else environ
+    folder = Path(environ[CLAIMS_ENV]) if environ.get(CLAIMS_ENV) else None
+    try:
+        begin(environ)
+        if folder is not None:
+            forget_claims(folder)
+        verdict = "ok"
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        verdict = exc.message
+    except OSError as exc:  # a run directory or a claims folder it may not write
+        print(f"the run cannot start: {exc}", file=sys.stderr)
+        verdict = f"the run cannot start: {exc}"
+    if folder is not None:
+        atomic_write_text(folder / "start", verdict + "\n")
+    return 0 if verdict == "ok" else 2
+
+
+def begin(environ: dict[str, str]) -> None:
+    """The checks and writes of the start of a run; raises ConfigError naming what is wrong."""
     from swarmmap.services.launcher import other_run_in, prepare, write_config
     from swarmmap.shared.floorplan import PlanError
     from swarmmap.shared.recording import RecordingError
 
-    environ = os.environ if environ is None else environ
     cfg = resolve(environ=environ)
     setup_logging(cfg.log_level, "start")
     if cfg.run_dir is None:
-        fail("config error:\n  run_dir: the start of a run needs its run directory (SWARMMAP_RUN_DIR)")
+        raise ConfigError("config error:\n  run_dir: the start of a run needs its run directory (SWARMMAP_RUN_DIR)")
     try:
         cfg = prepare(cfg)
     except (RecordingError, PlanError) as exc:
-        log.error("%s", exc)
-        return 2
+        raise ConfigError(str(exc)) from None
     if (why := other_run_in(cfg)) is not None:
-        fail(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
-    if claims := environ.get(CLAIMS_ENV):
-        forget_claims(Path(claims))
+        raise ConfigError(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
     log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,11 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv != ["start"]:
         print("usage: python -m swarmmap.services.claim start", file=sys.stderr)
         return 2
-    try:
-        return start()
-    except ConfigError as exc:
-        print(exc.message, file=sys.stderr)
-        return 2
+    return start()
 
 
 if __name__ == "__main__":

@@ -68,26 +68,31 @@ def test_task_robot_claims_by_host_name_unless_given(tmp_path, capsys):
 
 def compose_env(run_dir, robots: int) -> dict[str, str]:
     return {"SWARMMAP_PRESET": "smoke", "SWARMMAP_RUN_ID": "compose", "SWARMMAP_RUN_DIR": str(run_dir),
-            "SWARMMAP_ROBOTS": str(robots), "SWARMMAP_ROBOT_CLAIMS": str(run_dir / "claims")}
+            "SWARMMAP_ROBOTS": str(robots), "SWARMMAP_ROBOT_CLAIMS": str(run_dir.parent / "shared")}
 
 
-def test_start_writes_config_and_credentials_and_forgets_claims(tmp_path):
-    run_dir = tmp_path / "compose"
-    claim_robot(run_dir / "claims", "learner", 3, holder="a container of an earlier up")
+def test_start_writes_config_and_credentials_forgets_claims_and_says_ok(tmp_path):
+    run_dir, shared = tmp_path / "compose", tmp_path / "shared"
+    claim_robot(shared, "learner", 3, holder="a container of an earlier up")
     assert start(compose_env(run_dir, 3)) == 0
     assert "robots: 3" in (run_dir / "config.yaml").read_text()
     assert {"ca.pem", "acl.json5", "learner-2.key", "lidar-2.pem", "router-0.key"} <= {p.name for p in (run_dir / "secrets").iterdir()}
-    assert not list((run_dir / "claims").glob("*.json"))
+    assert not list(shared.glob("*.json")) and (shared / "start").read_text() == "ok\n"
     assert start(compose_env(run_dir, 3)) == 0  # the same run again: it resumes
 
 
 def test_start_refuses_a_run_directory_holding_another_run_and_changes_nothing(tmp_path, capsys):
-    run_dir = tmp_path / "compose"
+    run_dir, shared = tmp_path / "compose", tmp_path / "shared"
     assert start(compose_env(run_dir, 3)) == 0
     before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
-    with pytest.raises(SystemExit) as info:
-        start(compose_env(run_dir, 5))
-    assert info.value.code == 2
+    assert start(compose_env(run_dir, 5)) == 2
     err = capsys.readouterr().err
     assert "robots 3 there, 5 here" in err and "SWARMMAP_RUN_ID" in err
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    assert "robots 3 there, 5 here" in (shared / "start").read_text()  # what the run's other containers say
+
+
+def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):
+    assert start(compose_env(tmp_path / "compose", 3) | {"SWARMMAP_ROBOTS": "100"}) == 2
+    assert "robots" in capsys.readouterr().err and "robots" in (tmp_path / "shared" / "start").read_text()
+    assert not (tmp_path / "compose").exists()
