@@ -1,10 +1,12 @@
 """``docker compose up`` on a real Docker engine, in a fresh copy of the repository owned by a user
-who is not root, with nothing set beforehand: the image builds, the run is secure (every link
-mutual TLS, credentials made by the first step of the run), ends by itself and is whole and
-owned by that user; ``SWARMMAP_ROBOTS=5 ... --exit-code-from recorder`` runs five robots (one
-service of replicas that claim their ids, which a restarted container keeps) and returns the
-recorder's status; a run directory holding another run is refused and left as it was. The image
-also builds behind a TLS-intercepting proxy when given the site's CA."""
+who is not root, with nothing set beforehand: the run is secure (every link mutual TLS,
+credentials made by the first step of the run), ends by itself and is whole and owned by that
+user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
+runs five robots (replicas of one service that claim their ids, which a restarted container
+keeps), returns the recorder's status and keeps the first run whole beside it; a run directory
+holding an unfinished run with other settings is refused and left as it was, and no container
+of the refused run stays up. The image also builds behind a TLS-intercepting proxy when given
+the site's CA."""
 
 from __future__ import annotations
 
@@ -78,17 +80,6 @@ def assert_whole_run(run_dir: Path, robots: int, rounds: int) -> None:
         assert {f"/world/robots/{robot}/pose", f"/world/robots/{robot}/scan", f"/maps/mean/robot-{robot}"} <= entities.keys()
 
 
-@pytest.mark.timeout(3600)
-def test_compose_up_alone_makes_a_whole_secure_run_owned_by_the_clone_owner(clone):
-    up = compose(clone, "up")
-    assert up.returncode == 0, output(up, clone)
-    assert "INSECURE" not in up.stdout + up.stderr
-    runs = clone / "runs"
-    assert_whole_run(runs / "compose", robots=3, rounds=60)
-    owners = {(p.stat().st_uid, p.stat().st_gid) for p in [runs, *runs.rglob("*")]}
-    assert owners == {(UID, GID)}, f"files owned by {owners}"
-
-
 def logged_robots(container: str) -> list[str]:
     """The robot ids a lidar or learner container's log says it serves, one per start."""
     logs = subprocess.run(["docker", "logs", container], capture_output=True, text=True, timeout=60)
@@ -102,12 +93,26 @@ def running() -> list[str]:
     return ps.stdout.split()
 
 
-@pytest.mark.timeout(3600)
-def test_five_robots_from_the_environment_return_the_recorder_status_and_keep_their_ids(clone):
-    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five"}
+def owners(folder: Path) -> set[tuple[int, int]]:
+    return {(p.stat().st_uid, p.stat().st_gid) for p in [folder, *folder.rglob("*")]}
+
+
+@pytest.mark.timeout(5400)
+def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone):
+    up = compose(clone, "up")
+    assert up.returncode == 0, output(up, clone)
+    assert "INSECURE" not in up.stdout + up.stderr
+    runs = clone / "runs"
+    assert_whole_run(runs / "compose", robots=3, rounds=60)
+    assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
+
+    five = {"SWARMMAP_ROBOTS": "5"}
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
     assert up.returncode == 0, output(up, clone, five)
-    assert_whole_run(clone / "runs" / "five", robots=5, rounds=60)
+    assert_whole_run(runs / "compose", robots=5, rounds=60)
+    (kept,) = runs.glob("compose-*")  # the three robots' run, whole, beside it
+    assert_whole_run(kept, robots=3, rounds=60)
+    assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
     learners = compose(clone, "ps", "-a", "-q", "learner", env=five).stdout.split()
     served = {c: logged_robots(c) for c in learners}
     assert sorted(r for ids in served.values() for r in ids) == [str(r) for r in range(5)], served
@@ -122,7 +127,7 @@ def test_five_robots_from_the_environment_return_the_recorder_status_and_keep_th
 
 
 @pytest.mark.timeout(1800)
-def test_a_run_directory_holding_another_run_is_refused_and_left_as_it_was(clone):
+def test_a_run_directory_holding_an_unfinished_run_with_other_settings_is_refused_and_left_as_it_was(clone):
     other = clone / "runs" / "other"
     prepare = subprocess.run([*SWARMMAP, "prepare", "--preset", "smoke", "--robots", "2", "--run-id", "other", "--run-dir", str(other)],
                              env=clean_env(), capture_output=True, text=True, timeout=120)

@@ -1,7 +1,7 @@
 """Robot ids claimed by look-alike containers (services/claim.py) and compose's start of a run:
 replicas that claim at once get distinct ids, a holder gets its own id back, one too many is
-refused with a message naming the setting, and a run directory holding another run is refused
-without a byte of it changed."""
+refused with a message naming the setting; a finished run with other settings is kept aside
+whole, an unfinished one is refused without a byte of it changed."""
 
 from __future__ import annotations
 
@@ -90,6 +90,18 @@ def test_start_refuses_a_run_directory_holding_another_run_and_changes_nothing(t
     assert "robots 3 there, 5 here" in err and "SWARMMAP_RUN_ID" in err
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
     assert "robots 3 there, 5 here" in (shared / "start").read_text()  # what the run's other containers say
+
+
+def test_start_keeps_a_finished_run_with_other_settings_aside_and_starts_afresh(tmp_path):
+    run_dir = tmp_path / "compose"
+    assert start(compose_env(run_dir, 3)) == 0
+    (run_dir / "summary.json").write_text('{"ok": true}\n')  # what the recorder writes when the run is over
+    before = {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    assert start(compose_env(run_dir, 5)) == 0
+    (kept,) = [p for p in tmp_path.iterdir() if p.name.startswith("compose-")]
+    assert {p.relative_to(kept): p.read_bytes() for p in kept.rglob("*") if p.is_file()} == before
+    assert "robots: 5" in (run_dir / "config.yaml").read_text() and not (run_dir / "summary.json").exists()
+    assert (tmp_path / "shared" / "start").read_text() == "ok\n"
 
 
 def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):
