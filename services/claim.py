@@ -119,7 +119,8 @@ def begin(environ: dict[str, str]) -> None:
         if not (cfg.run_dir / "summary.json").exists():  # still running, or stopped without a word: never moved
             raise ConfigError(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
         kept = keep_aside(cfg.run_dir)
-        log.warning("%s held a finished run with other settings: kept as %s; this run starts afresh", cfg.run_dir, kept)
+        log.warning("%s held a finished run with other settings: kept beside it as %s; this run starts afresh",
+                    cfg.run_dir, kept.name)
     log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
 
 

@@ -14,8 +14,9 @@
 # repository), then, as the run directory's owner, runs `python -m swarmmap.services.claim start`:
 # it refuses a run directory holding another run, writes config.yaml and the credentials,
 # forgets the robot claims of an earlier `up`, and writes its verdict to
-# $SWARMMAP_ROBOT_CLAIMS/start. Every other container of a compose run (SWARMMAP_ROBOT_CLAIMS
-# set) reads that verdict first and stops, naming it, unless it is `ok`.
+# $SWARMMAP_ROBOT_CLAIMS/start. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set)
+# reads that verdict first and stops, naming it, unless it is `ok` (compose v1 starts the others
+# even when the recorder's container has exited).
 set -eu
 run_dir=${SWARMMAP_RUN_DIR:-}
 shared=${SWARMMAP_ROBOT_CLAIMS:-}
@@ -47,10 +48,14 @@ if [ "${1:-}" = --start-run ]; then
     shift
     python -m swarmmap.services.claim start
 elif [ -n "$shared" ]; then
-    verdict=$(cat "$shared/start" 2>/dev/null || true)
-    if [ "$verdict" != ok ]; then
-        echo "this run did not start (${shared}/start): ${verdict:-the recorder's container has not started it}" >&2
-        exit 2
-    fi
+    case "${1:-}" in
+    router | recorder | world | lidar | learner | observer)  # a service of the run; other commands are not held back
+        verdict=$(cat "$shared/start" 2>/dev/null || true)
+        if [ "$verdict" != ok ]; then
+            echo "this run did not start (${shared}/start): ${verdict:-the recorder's container has not started it}" >&2
+            exit 2
+        fi
+        ;;
+    esac
 fi
 exec swarmmap "$@"
