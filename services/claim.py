@@ -94,8 +94,9 @@ def start(environ: dict[str, str] | None = None) -> int:
         print(exc.message, file=sys.stderr)
         verdict = exc.message
     except OSError as exc:  # a run directory or a claims folder it may not write
-        print(f"the run cannot start: {exc}", file=sys.stderr)
-        verdict = f"the run cannot start: {exc}"
+        hint = " (claims of another user: `docker compose down --volumes` clears them)" if folder and str(folder) in str(exc) else ""
+        verdict = f"the run cannot start: {exc}{hint}"
+        print(verdict, file=sys.stderr)
     if folder is not None:
         atomic_write_text(folder / "start", verdict + "\n")
     return 0 if verdict == "ok" else 2
