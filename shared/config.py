@@ -916,14 +916,20 @@ def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = 
 
 def task_robot(given: int | None, robots: int, field: str, environ: dict[str, str] | None = None) -> int:
     """The robot a per-robot service serves: ``given`` (``--robot``), else its SLURM task rank
-    (``SLURM_PROCID``), so that ``srun --ntasks N swarmmap learner`` serves robots 0..N-1.
+    (``SLURM_PROCID``), so that ``srun --ntasks N swarmmap learner`` serves robots 0..N-1, else
+    one claimed in the folder ``SWARMMAP_ROBOT_CLAIMS`` names (compose's replicas; services/claim.py).
     Stops the service with a message naming ``field`` when there is none or it is out of range."""
     environ = os.environ if environ is None else environ
     robot = given
     if robot is None and environ.get("SLURM_PROCID", "").isdigit():
         robot = int(environ["SLURM_PROCID"])
+    if robot is None and environ.get("SWARMMAP_ROBOT_CLAIMS"):
+        from swarmmap.services.claim import claimed_robot
+
+        robot = claimed_robot(environ["SWARMMAP_ROBOT_CLAIMS"], field, robots)
     if robot is None or not 0 <= robot < robots:
-        fail(f"config error:\n  {field}: required (--robot, or the SLURM task rank), one of 0..{robots - 1} (got {robot!r})")
+        fail(f"config error:\n  {field}: required (--robot, the SLURM task rank or SWARMMAP_ROBOT_CLAIMS), "
+             f"one of 0..{robots - 1} (got {robot!r})")
     return robot
 
 

@@ -1,57 +1,146 @@
-"""``docker compose up`` on a real Docker engine, with the run's credentials from ``swarmmap
-secrets`` (every link mutual TLS): the run ends by itself with the recorder's status, the run
-directory is whole and owned by the invoking user, and the recording shows every robot; the
-image builds behind a TLS-intercepting proxy when given the site's CA."""
+"""``docker compose up`` on a real Docker engine, in a fresh copy of the repository owned by a user
+who is not root, with nothing set beforehand: the run is secure (every link mutual TLS,
+credentials made by the first step of the run), ends by itself and is whole and owned by that
+user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
+runs five robots (replicas of one service that claim their ids, which a restarted container
+keeps), returns the recorder's status and keeps the first run whole beside it; a run directory
+holding an unfinished run with other settings is refused and left as it was, and no container
+of the refused run stays up. The image also builds behind a TLS-intercepting proxy when given
+the site's CA."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
+import shutil
 import subprocess
+from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, recording_entities
+from tests.conftest import REPO, SWARMMAP, clean_env, free_port, recording_entities, wait_until
 from tests.deploy.conftest import BASE_IMAGE, build_context, compose_command
 
 pytestmark = pytest.mark.deploy
 
 UID = GID = 4321  # someone who is not root
+PROJECT = "swarmmaptest"
+# What a fresh shell would not have: settings that would make this run differ from a user's.
+NOT_SET = ("BASE_IMAGE", "TORCH", "CA_BUNDLE")
 
 
-def test_compose_up_returns_by_itself_with_a_whole_run_directory(docker_engine, tmp_path):
-    runs = tmp_path / "runs"
-    runs.mkdir()
-    os.chown(runs, UID, GID)
-    env = os.environ | {"BASE_IMAGE": BASE_IMAGE, "SWARMMAP_UID": str(UID), "SWARMMAP_GID": str(GID),
-                        "SWARMMAP_RUNS": str(runs), "SWARMMAP_RUN_ID": "compose"}
-    compose = [*compose_command(), "-f", str(REPO / "compose.yaml"), "-p", f"swarmmaptest{os.getpid()}"]
-    try:
-        build = subprocess.run([*compose, "build"], cwd=REPO, env=env, capture_output=True, text=True, timeout=1500)
-        assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
-        secrets = subprocess.run([*compose, "run", "--rm", "recorder", "secrets"], cwd=REPO, env=env, capture_output=True,
-                                 text=True, timeout=300)
-        assert secrets.returncode == 0, secrets.stdout[-3000:] + secrets.stderr[-3000:]
-        up = subprocess.run([*compose, "up", "--exit-code-from", "recorder"], cwd=REPO, env=env,
-                            capture_output=True, text=True, timeout=900)
-    finally:
-        subprocess.run([*compose, "down", "--remove-orphans"], cwd=REPO, env=env, capture_output=True, timeout=300)
-    assert up.returncode == 0, up.stdout[-5000:] + up.stderr[-2000:]
-    run_dir = runs / "compose"
+@pytest.fixture(scope="module")
+def clone(docker_engine, tmp_path_factory) -> Path:
+    """The files of a fresh clone that compose uses, owned by UID:GID, and their images (built
+    as `up` builds them on a fresh clone: from .env's settings); compose's containers, network
+    and volume are removed afterwards."""
+    dest = build_context(tmp_path_factory.mktemp("clone") / "swarmmap")
+    for name in ("compose.yaml", ".env"):
+        shutil.copy(REPO / name, dest / name)
+    for path in [dest, *dest.rglob("*")]:
+        os.lchown(path, UID, GID)
+    build = compose(dest, "build")  # this project's images of an earlier session hold older code
+    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    yield dest
+    compose(dest, "down", "--remove-orphans", "--volumes", timeout=300)
+
+
+def compose(clone: Path, *args: str, env: dict[str, str] | None = None, timeout: float = 2400) -> subprocess.CompletedProcess:
+    """``docker compose ARGS`` in ``clone`` with this process's environment less any swarmmap
+    setting, plus ``env``; the observer's ports are free ones."""
+    base = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_") and k not in NOT_SET}
+    ports = {"SWARMMAP_VIEWER_PORT": str(free_port()), "SWARMMAP_VIEWER_GRPC_PORT": str(free_port())}
+    return subprocess.run([*compose_command(), "-p", PROJECT, *args], cwd=clone, env=base | ports | (env or {}),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def output(proc: subprocess.CompletedProcess, clone: Path, env: dict[str, str] | None = None) -> str:
+    """What compose said, and the recorder's last words (a refused start is only in its log)."""
+    logs = compose(clone, "logs", "--no-color", "--tail", "20", "recorder", env=env, timeout=120).stdout
+    return proc.stdout[-6000:] + proc.stderr[-3000:] + "\nrecorder:\n" + logs
+
+
+def assert_whole_run(run_dir: Path, robots: int, rounds: int) -> None:
+    """summary.json ok with every learner finished, metrics rows for every robot, every output."""
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["ok"], summary
-    assert all(v["finished"] and v["rounds"] == 60 for v in summary["learners"].values())
-    for name in ("config.yaml", "metrics.csv", "groundtruth.png", "groundtruth.npz", "observer.json", "recording.rrd"):
+    assert {k: (v["finished"], v["rounds"]) for k, v in summary["learners"].items()} == {
+        str(r): (True, rounds) for r in range(robots)}
+    with (run_dir / "metrics.csv").open() as f:
+        assert {int(row["robot"]) for row in csv.DictReader(f)} == set(range(robots))
+    for name in ("config.yaml", "groundtruth.png", "groundtruth.npz", "observer.json", "recording.rrd"):
         assert (run_dir / name).stat().st_size > 0, name
-    for robot in range(3):
-        for name in (f"maps/robot-{robot}-mean.png", f"models/robot-{robot}.pt", f"data/robot-{robot}.npz"):
+    for robot in range(robots):
+        for name in (f"maps/robot-{robot}-mean.png", f"models/robot-{robot}.pt", f"data/robot-{robot}.npz",
+                     f"secrets/learner-{robot}.key", f"secrets/lidar-{robot}.key"):
             assert (run_dir / name).exists(), name
-    assert (run_dir / "secrets" / "learner-2.pem").exists() and "INSECURE" not in up.stdout + up.stderr
-    owners = {(p.stat().st_uid, p.stat().st_gid) for p in run_dir.rglob("*")}
-    assert owners == {(UID, GID)}, f"files owned by {owners}"
     entities = recording_entities(run_dir / "recording.rrd")
-    for robot in range(3):
+    for robot in range(robots):
         assert {f"/world/robots/{robot}/pose", f"/world/robots/{robot}/scan", f"/maps/mean/robot-{robot}"} <= entities.keys()
+
+
+def logged_robots(container: str) -> list[str]:
+    """The robot ids a lidar or learner container's log says it serves, one per start."""
+    logs = subprocess.run(["docker", "logs", container], capture_output=True, text=True, timeout=60)
+    return [line.split("serves robot ")[1].split()[0] for line in (logs.stdout + logs.stderr).splitlines() if "serves robot " in line]
+
+
+def running() -> list[str]:
+    """The names of this project's containers that are running."""
+    ps = subprocess.run(["docker", "ps", "--filter", f"label=com.docker.compose.project={PROJECT}", "--format", "{{.Names}}"],
+                        capture_output=True, text=True, timeout=60)
+    return ps.stdout.split()
+
+
+def owners(folder: Path) -> set[tuple[int, int]]:
+    return {(p.stat().st_uid, p.stat().st_gid) for p in [folder, *folder.rglob("*")]}
+
+
+@pytest.mark.timeout(5400)
+def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone):
+    up = compose(clone, "up")
+    assert up.returncode == 0, output(up, clone)
+    assert "INSECURE" not in up.stdout + up.stderr
+    runs = clone / "runs"
+    assert_whole_run(runs / "compose", robots=3, rounds=60)
+    assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
+
+    five = {"SWARMMAP_ROBOTS": "5"}
+    up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
+    assert up.returncode == 0, output(up, clone, five)
+    assert_whole_run(runs / "compose", robots=5, rounds=60)
+    (kept,) = runs.glob("compose-*")  # the three robots' run, whole, beside it
+    assert_whole_run(kept, robots=3, rounds=60)
+    assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
+    learners = compose(clone, "ps", "-a", "-q", "learner", env=five).stdout.split()
+    served = {c: logged_robots(c) for c in learners}
+    assert sorted(r for ids in served.values() for r in ids) == [str(r) for r in range(5)], served
+    # A container started again (its host name is its id) serves the robot it served before.
+    container = learners[0]
+    try:
+        subprocess.run(["docker", "start", container], check=True, capture_output=True, timeout=60)
+        assert wait_until(lambda: len(logged_robots(container)) == 2, timeout=120, interval=1.0), logged_robots(container)
+    finally:
+        subprocess.run(["docker", "kill", container], capture_output=True, timeout=60)
+    assert logged_robots(container) == served[container] * 2
+
+
+@pytest.mark.timeout(1800)
+def test_a_run_directory_holding_an_unfinished_run_with_other_settings_is_refused_and_left_as_it_was(clone):
+    other = clone / "runs" / "other"
+    prepare = subprocess.run([*SWARMMAP, "prepare", "--preset", "smoke", "--robots", "2", "--run-id", "other", "--run-dir", str(other)],
+                             env=clean_env(), capture_output=True, text=True, timeout=120)
+    assert prepare.returncode == 0, prepare.stderr
+    for path in [other, *other.rglob("*")]:
+        os.lchown(path, UID, GID)
+    before = {p: p.read_bytes() for p in other.rglob("*") if p.is_file()}
+    up = compose(clone, "up", "--exit-code-from", "recorder", env={"SWARMMAP_RUN_ID": "other"})
+    assert up.returncode != 0, output(up, clone, {"SWARMMAP_RUN_ID": "other"})
+    logs = compose(clone, "logs", "recorder", env={"SWARMMAP_RUN_ID": "other"}).stdout
+    assert "robots 2 there, 3 here" in logs and "SWARMMAP_RUN_ID" in logs, logs[-3000:]
+    assert wait_until(lambda: not running(), timeout=120, interval=1.0), f"still running: {running()}"
+    assert {p: p.read_bytes() for p in other.rglob("*") if p.is_file()} == before
 
 
 def untrusting_base() -> str:
@@ -63,6 +152,7 @@ def untrusting_base() -> str:
     return tag
 
 
+@pytest.mark.timeout(3600)
 def test_image_builds_behind_an_intercepting_proxy_with_the_site_ca_bundle(docker_engine, tmp_path):
     base = untrusting_base()
     ctx = build_context(tmp_path / "ctx", ("/etc/ssl/certs/ca-certificates.crt", "deploy/docker/site-ca.pem"))

@@ -1,0 +1,151 @@
+"""Robot ids claimed at start, for per-robot services that all look alike (compose's replicas
+of one lidar service and one learner service), and compose's start of a run.
+
+With ``SWARMMAP_ROBOT_CLAIMS=FOLDER`` in its environment (compose: a volume shared by the
+run's containers), a lidar streamer or learner started without ``--robot`` (and outside SLURM)
+takes the lowest robot id that no other holder has taken for its service. The claims are
+``FOLDER/<service>.json`` (holder -> robot id), read and written under an exclusive ``flock``,
+so replicas that start at once get distinct ids. The holder is the host name, which in a
+container is the container's id: a container that restarts gets its own id back, and one more
+than the run has robots is refused. Outside containers, processes that share a host name share
+a claim: give them ``--robot`` instead.
+
+``python -m swarmmap.services.claim start`` is the first step of a compose run (the recorder's
+container runs it before the recorder, see deploy/docker/entrypoint.sh): from the same
+environment as every service, it checks the run directory (the same settings: the run resumes;
+a finished run with other settings: kept as ``RUN_DIR-<its end>`` beside it, and this run
+starts afresh; an unfinished one with other settings: refused, as ``swarmmap up`` refuses it),
+writes the run's ``config.yaml`` and credentials, forgets the claims of the containers of an
+earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or why not), which every
+other container of the run reads before it starts its service.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+from swarmmap.shared.atomic import atomic_write_text
+from swarmmap.shared.config import ConfigError, fail, resolve
+from swarmmap.shared.runtime import setup_logging
+
+CLAIMS_ENV = "SWARMMAP_ROBOT_CLAIMS"
+
+log = logging.getLogger("claim")
+
+
+class ClaimError(Exception):
+    """No robot id is left for this holder."""
+
+
+def claim_robot(folder: Path, service: str, robots: int, holder: str | None = None) -> int:
+    """The robot id ``holder`` (default: this host's name) holds for ``service``, claimed now
+    if it holds none: the lowest of ``0..robots-1`` that nobody holds."""
+    holder = holder or socket.gethostname()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{service}.json"
+    with open(folder / f".{service}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+        claims: dict[str, int] = json.loads(path.read_text()) if path.exists() else {}
+        robot = claims.get(holder)
+        if robot is None or not 0 <= robot < robots:
+            free = sorted(set(range(robots)) - set(claims.values()))
+            if not free:
+                raise ClaimError(f"all {robots} robot ids of {service} are held ({path}: {json.dumps(claims)}); "
+                                 f"more {service} containers than robots? (SWARMMAP_ROBOTS={robots})")
+            robot = claims[holder] = free[0]
+            atomic_write_text(path, json.dumps(claims, indent=1) + "\n")
+    log.info("%s %s serves robot %d (claims in %s)", service, holder, robot, path)
+    return robot
+
+
+def claimed_robot(folder: str, field: str, robots: int) -> int:
+    """The robot of the service whose robot field is ``field`` (``learner.robot``), claimed in
+    ``folder``; stops the service with a message naming the field when none is left."""
+    try:
+        return claim_robot(Path(folder), field.split(".")[0], robots)
+    except (ClaimError, OSError, ValueError) as exc:  # ValueError: a claims file that is not JSON
+        fail(f"config error:\n  {field}: no robot id to claim in {folder} ({CLAIMS_ENV}): {exc}")
+
+
+def forget_claims(folder: Path) -> None:
+    """Drop every claim in ``folder`` (a new ``up``: its containers claim afresh)."""
+    for path in folder.glob("*.json"):
+        path.unlink()
+
+
+def start(environ: dict[str, str] | None = None) -> int:
+    """Compose's first step of a run (see the module's docstring); returns the exit status and
+    leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start."""
+    environ = os.environ if environ is None else environ
+    folder = Path(environ[CLAIMS_ENV]) if environ.get(CLAIMS_ENV) else None
+    try:
+        begin(environ)
+        if folder is not None:
+            forget_claims(folder)
+        verdict = "ok"
+    except ConfigError as exc:
+        print(exc.message, file=sys.stderr)
+        verdict = exc.message
+    except OSError as exc:  # a run directory or a claims folder it may not write
+        hint = " (claims of another user: `docker compose down --volumes` clears them)" if folder and str(folder) in str(exc) else ""
+        verdict = f"the run cannot start: {exc}{hint}"
+        print(verdict, file=sys.stderr)
+    if folder is not None:
+        atomic_write_text(folder / "start", verdict + "\n")
+    return 0 if verdict == "ok" else 2
+
+
+def begin(environ: dict[str, str]) -> None:
+    """The checks and writes of the start of a run; raises ConfigError naming what is wrong."""
+    from swarmmap.services.launcher import other_run_in, prepare, write_config
+    from swarmmap.shared.floorplan import PlanError
+    from swarmmap.shared.recording import RecordingError
+
+    cfg = resolve(environ=environ)
+    setup_logging(cfg.log_level, "start")
+    if cfg.run_dir is None:
+        raise ConfigError("config error:\n  run_dir: the start of a run needs its run directory (SWARMMAP_RUN_DIR)")
+    try:
+        cfg = prepare(cfg)
+    except (RecordingError, PlanError) as exc:
+        raise ConfigError(str(exc)) from None
+    if (why := other_run_in(cfg)) is not None:
+        if not (cfg.run_dir / "summary.json").exists():  # still running, or stopped without a word: never moved
+            raise ConfigError(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
+        kept = keep_aside(cfg.run_dir)
+        log.warning("%s held a finished run with other settings: kept beside it as %s; this run starts afresh",
+                    cfg.run_dir, kept.name)
+    log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
+
+
+def keep_aside(run_dir: Path) -> Path:
+    """Move a finished run out of ``run_dir`` to a sibling named after its end; returns it."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime((run_dir / "summary.json").stat().st_mtime))
+    kept = run_dir.with_name(f"{run_dir.name}-{stamp}")
+    n = 1
+    while kept.exists():
+        n += 1
+        kept = run_dir.with_name(f"{run_dir.name}-{stamp}-{n}")
+    run_dir.rename(kept)
+    run_dir.mkdir()
+    return kept
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m swarmmap.services.claim start``."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv != ["start"]:
+        print("usage: python -m swarmmap.services.claim start", file=sys.stderr)
+        return 2
+    return start()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
