@@ -615,6 +615,9 @@ LAUNCHER_VARIABLES: dict[str, str] = {
     "SWARMMAP_GPUS_PER_LEARNER": "deploy/slurm/team.sbatch: GPUs per learner task",
     "SWARMMAP_ROUTER_PORT": "deploy/slurm/team.sbatch: the router's port",
     "SWARMMAP_END_GRACE_S": "deploy/slurm/team.sbatch: how long the services get to leave once the run is over",
+    "SWARMMAP_ROBOT_CLAIMS": "compose.yaml (inside each container): where replicas claim their robot ids",
+    "SWARMMAP_VIEWER_PORT": "compose.yaml: the host port of the observer's web viewer (on 127.0.0.1)",
+    "SWARMMAP_VIEWER_GRPC_PORT": "compose.yaml: the host port of the observer's gRPC server (on 127.0.0.1)",
 }
 
 
