@@ -248,6 +248,20 @@ class LearnerSettings(Section):
     consensus: ConsensusKind = Field(
         "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
                              "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")
+    robust: bool = Field(
+        True, description="a member that lies can neither pass for honest nor pull the team far: each round's "
+                          "neighbour States are judged together, block by block, against the round's honest spread; "
+                          "each link's pull and dual are bounded; sigma trusts a neighbour's certainty at most "
+                          "sigma_max_weight x DiNNO's pull (false: DiNNO's consensus with only each State's own checks)")
+    robust_spread_factor: float = Field(
+        4.0, gt=1, description="robust: a State one of whose blocks lies farther from this node's than this many times "
+                               "the round's honest spread (the median over the neighbours) is refused")
+    robust_pull_factor: float = Field(
+        3.0, gt=0, description="robust: each link's pull and dual, per block, at most this many times the median over "
+                               "the links")
+    sigma_max_weight: float = Field(
+        1.5, gt=1, le=2, description="sigma with robust: a node's pull on a mean is at most this many times DiNNO's "
+                                     "however sure the neighbour says it is (2: as sure as it says)")
     consensus_min_weight: float = Field(
         0.05, gt=0, le=1, description="sigma: a node's pull on a parameter stays within [this, 2 - this] x DiNNO's")
     sigma_memory_rounds: int = Field(
@@ -357,6 +371,13 @@ class FaultSettings(Section):
     seed: int = Field(0, ge=0, description="seed of the fault draws")
     per_round: bool = Field(False, description="draw link_success once per link and round, for both directions and "
                                                "every message of the round (a radio link up or down), not per message")
+    attack: Literal["none", "ratchet", "signflip", "scale", "noise", "sigma", "stall", "equivocate"] = Field(
+        "none", description="what the robots of attackers tell their neighbours instead of their States (each with its "
+                            "own credentials): ratchet (a random direction at 0.45 of the norm, anew each round), signflip "
+                            "(the output layer negated), scale (x 1.45), noise (0.05 of the norm), sigma (a BNN's rho "
+                            "lowered by 2, its means moved), stall (RoundCompletes, never a State), equivocate (two "
+                            "States a round); see services/learner/attacks.py")
+    attackers: list[int] = Field(default_factory=list, description="the robots whose learners attack (attack); empty: none")
 
 
 class UpSettings(Section):
@@ -404,6 +425,15 @@ class RunConfig(Section):
     recorder: RecorderSettings = Field(default_factory=RecorderSettings)
     faults: FaultSettings = Field(default_factory=FaultSettings)
     up: UpSettings = Field(default_factory=UpSettings)
+
+    @model_validator(mode="after")
+    def _attackers(self) -> RunConfig:
+        f = self.faults
+        if any(not 0 <= r < self.robots for r in f.attackers):
+            raise ValueError(f"faults.attackers {f.attackers}: robots are 0..{self.robots - 1}")
+        if f.attack == "sigma" and f.attackers and self.learner.model != "bnn":
+            raise ValueError("faults.attack sigma lies about a Bayesian network's rho: it needs learner.model bnn")
+        return self
 
     @model_validator(mode="after")
     def _secrets_in_run_dir(self) -> RunConfig:

@@ -34,16 +34,34 @@ class StateLayout:
     param_count: int
     copies: int = 1
     matrices: tuple[tuple[int, int, int], ...] = ()  # (offset, rows, cols) of each weight matrix
+    tensors: tuple[tuple[str, int, int], ...] = ()  # (name, offset, size) of each parameter tensor
 
     @classmethod
     def of(cls, model: nn.Module, copies: int = 1) -> StateLayout:
         """The layout of ``model``'s States with ``copies`` parameter-sized vectors."""
-        matrices, at = [], 0
-        for p in model.parameters():
+        matrices, tensors, at = [], [], 0
+        for name, p in model.named_parameters():
             if p.dim() == 2:
                 matrices.append((at, int(p.shape[0]), int(p.shape[1])))
+            tensors.append((name, at, p.numel()))
             at += p.numel()
-        return cls(at, copies, tuple(matrices))
+        return cls(at, copies, tuple(matrices), tuple(tensors))
+
+    def blocks(self) -> list[tuple[str, list[tuple[int, int]]]]:
+        """The parts a neighbour's State is judged by, each (name, [(offset, size), ...]): a
+        layer's weights and bias together, a Bayesian layer's means and rho apart, in every copy
+        of the State (a tracker's or counts' own)."""
+        groups: dict[str, list[tuple[int, int]]] = {}
+        for name, at, n in self.tensors:
+            layer, _, kind = name.rpartition(".")
+            groups.setdefault(f"{layer or kind}{' rho' if kind.endswith('_rho') else ''}", []).append((at, n))
+        if not groups:
+            groups = {"state": [(0, self.param_count)]}
+        out = []
+        for c in range(self.copies):
+            tag = "" if c == 0 else f" (copy {c + 1})"
+            out += [(name + tag, [(c * self.param_count + at, n) for at, n in segs]) for name, segs in groups.items()]
+        return out
 
     @property
     def size(self) -> int:

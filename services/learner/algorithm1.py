@@ -44,10 +44,11 @@ from swarmmap.services.learner.exchange import (
     ExchangeStats,
     NodeUpdate,
     Rejoin,
+    RoundCheck,
     StateCheck,
     refuse,
 )
-from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer, corroborated
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
@@ -62,10 +63,10 @@ class Algorithm1:
     a plausible State further ahead than the team can replay, from ``rejoin(own, {peer: state})``."""
 
     def __init__(self, node_id: int, neighbours: set[int], update: NodeUpdate, transport: Transport,
-                 rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None, rejoin: Rejoin | None = None,
-                 stats: ExchangeStats | None = None, stop: threading.Event | None = None):
+                 rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None, screen: RoundCheck | None = None,
+                 rejoin: Rejoin | None = None, stats: ExchangeStats | None = None, stop: threading.Event | None = None):
         self.node_id, self.neighbours, self.update, self.transport, self.rules = node_id, set(neighbours), update, transport, rules
-        self.check, self.rejoin, self.stop = check, rejoin, stop
+        self.check, self.screen, self.rejoin, self.stop = check, screen, rejoin, stop
         self.stats = stats if stats is not None else ExchangeStats()
         self.begin(np.zeros(0, np.float32), 0, 0, False)
 
@@ -95,6 +96,8 @@ class Algorithm1:
         busy_since = time.monotonic()
         used = self.late.fill({j: peers[j] for j in active & peers.keys()}, active, self.rnd)
         self.stats.missed += len(active) - len(used)
+        used = self.members.screened(self.screen, self.state, used, {j: peers[j] for j in self.members.suspects & peers.keys()},
+                                     self.rnd)
         self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
         self.members.paused(time.monotonic() - busy_since)
         self.updated = True
@@ -124,10 +127,19 @@ class Algorithm1:
         return self.rules.round_wait > 0 and time.monotonic() - self.round_started >= self.rules.round_wait
 
     def on_message(self, msg: Envelope, now: float) -> None:
-        """Route one neighbour's message: poor links' other rounds, a neighbour behind, or this node's rounds."""
+        """Route one neighbour's message: poor links' other rounds, a neighbour behind, or this node's
+        rounds. A neighbour that says two different things for one round is hostile: left out for good."""
+        if msg.sender in self.members.banned:
+            return
+        if msg.kind == "state" and self.buf.held(msg.sender, msg.round) is not None:  # the first State of a round counts
+            self.members.heard_from(msg.sender, now)
+            if self.members.judge(msg, self.check, self.state):  # a second, different and plausible one: a liar
+                self.members.equivocates(msg, self.buf, self.late, self.rnd)
+            return
         newest = self.replay.seen(msg.sender, msg.round) if msg.kind == "state" else False
         if self.rules.round_wait > 0 and not self.joining and not self.rnd <= msg.round <= self.rnd + ROUNDS_AHEAD:
-            self.on_late(msg, now)
+            self.members.heard_from(msg.sender, now)
+            self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state))
         elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
             if newest:
                 self.replay.answer(msg.sender, msg.round, self.rnd, self.transport, now)
@@ -136,17 +148,12 @@ class Algorithm1:
         else:
             self.on_state(msg, now)
 
-    def on_late(self, msg: Envelope, now: float) -> None:
-        """Poor links: a State of another round is the neighbour's newest word, kept for a round
-        that gets none from it (nothing is replayed: a node behind catches up by its timeouts)."""
-        self.members.heard_from(msg.sender, now)
-        if msg.kind == "state" and msg.round >= self.late.newest_round(msg.sender):
-            if self.members.judge(msg, self.check, self.state):
-                self.late.keep(msg.sender, msg.round, msg.params)
-
     def on_complete(self, msg: Envelope, now: float) -> None:
-        """A neighbour's RoundComplete of this round or one ahead."""
-        self.members.heard_from(msg.sender, now)
+        """A neighbour's RoundComplete of this round or one ahead; it counts as word from the
+        neighbour only once its State of that round is here (one that completes rounds without
+        sending its State is silent)."""
+        if self.buf.held(msg.sender, msg.round) is not None:
+            self.members.heard_from(msg.sender, now)
         if msg.round <= self.rnd + ROUNDS_AHEAD:
             self.buf.complete[msg.round].add(msg.sender)
 
@@ -154,21 +161,19 @@ class Algorithm1:
         """A State of this round or a later one: kept for its round, a reason to catch up, or refused."""
         j, r = msg.sender, msg.round
         self.members.heard_from(j, now)
-        if j in self.buf.states[r]:
-            return  # the first State of a round counts
         keep = self.rules.keep_rounds
         # Left behind: stuck in this round for longer than the neighbours wait for anyone, while
         # they are further ahead than they can replay. They left this node out (it was slow to
         # start, or starved of CPU): catch up with them rather than wait for rounds nobody will send.
         left_behind = (now - self.round_started > self.rules.silent_after
                        and self.rnd + max(keep, ROUNDS_AHEAD) < r <= self.rounds)
-        jump = (self.joining and not self.updated and self.rnd + keep < r <= self.rounds) or left_behind
+        jump = ((self.joining and not self.updated and self.rnd + keep < r <= self.rounds) or left_behind) and corroborated(
+            self.replay.newest, self.neighbours - self.members.banned, r)
         if r > self.rnd + ROUNDS_AHEAD and not jump:
             if not (self.joining and r <= self.rnd + keep):  # (those are the replay's, coming)
                 refuse(self.stats, self.node_id, msg, f"round {r} while this node is at round {self.rnd}", "far-future")
             return
-        stale = (self.joining and not self.updated) or left_behind  # a node catching up cannot judge distances
-        if not self.members.judge(msg, self.check, None if stale else self.state):
+        if not self.members.judge(msg, self.check, self.state):  # (own parameters a few rounds old when catching up)
             return
         if jump:
             self.catch_up(msg, now, left_behind)
@@ -243,7 +248,8 @@ class RoundLoop:
         m = self.m
         lost = m.transport.lost_peers()
         m.replay.forget(lost)
-        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.updated, m.rnd, now)
+        m.buf.forget(lost)
+        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now)
         if now - self.last_progress > m.rules.resend_after:
             m.send_state()
             if m.updated:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.node import LocalNode, NodeInputs
+from swarmmap.services.learner.robust import PullBound
 from swarmmap.shared.models import set_flat
 
 
@@ -21,21 +22,30 @@ def self_weight(weights: dict[int, float], node: int, peers: dict[int, np.ndarra
     return weights[node] + sum(w for j, w in weights.items() if j != node and j not in peers)
 
 
+def bounded(peers: dict[int, np.ndarray], own: np.ndarray, bound: PullBound | None, device) -> dict[int, torch.Tensor]:
+    """The neighbours' States as tensors, each one's difference from ``own`` clipped by ``bound`` (robust consensus)."""
+    rows = {j: torch.as_tensor(v, device=device) for j, v in peers.items()}
+    if bound is None or not rows:
+        return rows
+    clipped = bound.rows(torch.as_tensor(own, device=device), torch.stack(list(rows.values())))
+    return dict(zip(rows, clipped))
+
+
 class DsgdNode(LocalNode):
     """DiNNO's DSGD: mix with the neighbours by Metropolis weights, then one gradient step at the
     mixed parameters. (DiNNO's single-process loop mixes in place, so later nodes see earlier
     nodes' new values; here every node mixes round-k values, as independent processes must.)"""
 
-    def __init__(self, inputs: NodeInputs, weights: dict[int, float], node: int):
+    def __init__(self, inputs: NodeInputs, weights: dict[int, float], node: int, bound: PullBound | None = None):
         super().__init__(inputs)
-        self.weights, self.node = weights, node
+        self.weights, self.node, self.bound = weights, node, bound
 
     def update(self, k: int, theta_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         self.begin_round(k)
         own = self_weight(self.weights, self.node, peers)  # an absent neighbour's weight stays home
         mixed = own * torch.as_tensor(theta_i, device=self.device)
-        for j, th in peers.items():
-            mixed = mixed + self.weights[j] * torch.as_tensor(th, device=self.device)
+        for j, th in bounded(peers, theta_i, self.bound, self.device).items():
+            mixed = mixed + self.weights[j] * th
         return self._step(k, mixed)
 
     def local_update(self, k: int, theta_i: np.ndarray) -> np.ndarray:
@@ -55,9 +65,9 @@ class DsgtNode(LocalNode):
     theta <- W_ii theta - alpha y_i + sum_j W_ij theta_j, then y <- W_ii y_i + sum_j W_ij y_j
     + g(theta) - g_old, with y and g_old starting at the gradient at theta_0."""
 
-    def __init__(self, inputs: NodeInputs, weights: dict[int, float], node: int):
+    def __init__(self, inputs: NodeInputs, weights: dict[int, float], node: int, bound: PullBound | None = None):
         super().__init__(inputs)
-        self.weights, self.node = weights, node
+        self.weights, self.node, self.bound = weights, node, bound
         self.n = self.layout.param_count
         self.g_old = self.gradient()
         self.y = self.g_old.clone()
@@ -80,8 +90,7 @@ class DsgtNode(LocalNode):
         w_own = self_weight(w, self.node, peers)
         theta = w_own * own[:n] - alpha * own[n:]
         y = w_own * own[n:]
-        for j, st in peers.items():
-            other = torch.as_tensor(st, device=self.device)
+        for j, other in bounded(peers, state_i, self.bound, self.device).items():
             theta = theta + w[j] * other[:n]
             y = y + w[j] * other[n:]
         return self._track(theta, y)

@@ -9,9 +9,9 @@ comes ``every_s`` seconds later. The team's round numbers drift apart; a State o
 already taken from the same neighbour (reordered) is ignored.
 
 States are screened as in Algorithm 1, except that the robots train apart between exchanges: a
-State passes when it is plausible against this node's parameters or against any neighbour's
-newest State taken, and before the node has taken any (it starts, or resumed behind its team)
-only the tests that need no reference apply. A neighbour silent for ``silent_after`` seconds
+State passes when it is plausible against this node's parameters or against another neighbour's
+newest State taken (never the sender's own earlier one: a State may not vouch for the next). A
+neighbour that sends two different States for one round is hostile and never heard again. A neighbour silent for ``silent_after`` seconds
 is forgotten (``forget(j)``: the update stops pulling towards its last State) until it sends
 again; a node never fails for want of neighbours. After the last round the node sends its final
 State (round ``rounds``) and waits up to ``linger`` seconds for its neighbours' final States
@@ -29,6 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, NodeUpdate, StateCheck, refuse
+from swarmmap.services.learner.membership import differs
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
@@ -48,6 +49,7 @@ class ClockExchange:
         self.newest: dict[int, tuple[int, np.ndarray]] = {}  # each neighbour's newest State taken: (round, vector)
         self.heard: dict[int, float] = {}
         self.forgotten: set[int] = set()
+        self.banned: set[int] = set()  # said two different things for one round
         self.state = np.zeros(0, np.float32)
 
     def run(self, state: np.ndarray, rounds: int, start_round: int = 0) -> np.ndarray:
@@ -89,9 +91,19 @@ class ClockExchange:
     def take(self, msg: Envelope, into: dict[int, np.ndarray], now: float) -> None:
         """Keep a neighbour's State (in ``into`` too) if it is news and plausible."""
         j = msg.sender
-        if msg.kind != "state" or j not in self.neighbours or msg.round < self.newest.get(j, (-1, None))[0]:
+        if msg.kind != "state" or j not in self.neighbours or j in self.banned or msg.round < self.newest.get(j, (-1, None))[0]:
             return  # RoundCompletes (a node on round-based exchange), strangers, reordered older States
-        why = self.judge(msg.params)
+        if self.newest.get(j, (-1, None))[0] == msg.round and differs(self.newest[j][1], msg.params):
+            self.banned.add(j)
+            self.forgotten.discard(j)
+            self.newest.pop(j, None)
+            self.stats.refused["equivocation"] += 1
+            log.warning("node %d: neighbour %d sent two different States for its round %d; it is left out for the rest "
+                        "of the run", self.node_id, j, msg.round)
+            if self.forget is not None:
+                self.forget(j)
+            return
+        why = self.judge(j, msg.params)
         if why is not None:
             refuse(self.stats, self.node_id, msg, why, "implausible")  # (why, against its own parameters)
             return
@@ -103,13 +115,12 @@ class ClockExchange:
         self.heard[j] = now
         into[j] = msg.params
 
-    def judge(self, theirs: np.ndarray) -> str | None:
-        """Why ``theirs`` is refused against every reference (this node's parameters and the
-        neighbours' newest), or None when one of them finds it plausible. Before the node has
-        taken any State it cannot judge distances: only the tests without a reference apply."""
+    def judge(self, j: int, theirs: np.ndarray) -> str | None:
+        """Why ``theirs`` (from ``j``) is refused against every reference (this node's parameters
+        and the other neighbours' newest), or None when one of them finds it plausible."""
         if self.check is None:
             return None
-        refs = [self.state, *(v for _, v in self.newest.values())] if self.newest else [None]
+        refs = [self.state, *(v for k, (_, v) in self.newest.items() if k != j)]
         first = None
         for ref in refs:
             why = self.check(theirs, ref)

@@ -24,6 +24,7 @@ import torch
 from swarmmap.services.learner.consensus.base import ConsensusRule
 from swarmmap.services.learner.node import LocalNode, NodeInputs, make_optimizer
 from swarmmap.services.learner.regularization import UniformL2
+from swarmmap.services.learner.robust import PullBound
 from swarmmap.services.learner.settings import DinnoSettings
 from swarmmap.shared.models import set_flat
 
@@ -32,13 +33,14 @@ class DinnoNode(LocalNode):
     """One node's model, data, duals and rho; :meth:`update` is Algorithm 1's NODEUPDATE.
 
     ``public()`` (None: the node's own parameters) is what the neighbours hold of this node's
-    State where it differs from it (compression with error feedback: the sender's replica)."""
+    State where it differs from it (compression with error feedback: the sender's replica).
+    ``bound`` (robust consensus) clips each link's pull and dual."""
 
     def __init__(self, inputs: NodeInputs, dinno: DinnoSettings, rule: ConsensusRule, reg: UniformL2,
-                 public: Callable[[], np.ndarray | None] | None = None):
+                 public: Callable[[], np.ndarray | None] | None = None, bound: PullBound | None = None):
         super().__init__(inputs)
         self.d, self.rule, self.reg = dinno, rule, reg
-        self.public = public
+        self.public, self.bound = public, bound
         self.rho = dinno.rho_init
         self.duals: dict[int, torch.Tensor] = {}  # one per link
         self.groups = reg.groups(self.model)
@@ -125,12 +127,16 @@ class DinnoNode(LocalNode):
         thj = torch.stack([self.known[j][1] for j in ids])
         extras = torch.stack([self.known[j][2] for j in ids]) if self.layout.copies > 1 else None
         th_i = self.public_params(torch.nn.utils.parameters_to_vector(self.model.parameters()).detach())
+        if self.bound is not None:
+            thj = self.bound.rows(th_i, thj)
         ages = torch.tensor([k - self.known[j][0] for j in ids], dtype=th_i.dtype, device=self.device)
         th_reg, a = self.rule.targets(ages, th_i, thj, extras)
         for row, j in enumerate(ids):
             if j in fresh:
                 step = self.rule.dual_step(self.rho, th_i, thj[row], th_reg[row], None if a is None else a[row])
                 self.duals[j] = self.duals.get(j, torch.zeros_like(th_i)) + step
+        if self.bound is not None:
+            self.bound.duals(self.duals)
         heard = [j for j in ids if k - self.known[j][0] < self.duals_for]  # the links this node hears from
         duals = torch.stack([self.duals[j] for j in heard]).sum(0) if heard else torch.zeros_like(th_i)
         return th_reg, a, duals

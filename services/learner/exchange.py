@@ -28,6 +28,8 @@ CHECK_EVERY_S = 0.5  # how often a waiting node looks for neighbours gone or sil
 StateCheck = Callable[[np.ndarray, "np.ndarray | None"], "str | None"]
 # update(round, own State, {neighbour: its State of that round}) -> the node's next State
 NodeUpdate = Callable[[int, np.ndarray, dict[int, np.ndarray]], np.ndarray]
+# screen(own State, {neighbour: its State of the round}) -> {neighbour: why refused} (the round's States judged together)
+RoundCheck = Callable[[np.ndarray, dict[int, np.ndarray]], dict[int, str]]
 # rejoin(own State, {neighbour: State}) -> the State a node goes on from after catching up with its team
 Rejoin = Callable[[np.ndarray, dict[int, np.ndarray]], np.ndarray]
 

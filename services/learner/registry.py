@@ -18,7 +18,14 @@ from swarmmap.services.learner.consensus import consensus_rule
 from swarmmap.services.learner.dinno import DinnoNode
 from swarmmap.services.learner.node import Node, NodeInputs, coverage_for
 from swarmmap.services.learner.regularization import regularization
-from swarmmap.services.learner.settings import ConsensusSettings, DinnoSettings, RegularizationSettings, TrainingSettings
+from swarmmap.services.learner.robust import PullBound
+from swarmmap.services.learner.settings import (
+    ConsensusSettings,
+    DinnoSettings,
+    RegularizationSettings,
+    RobustSettings,
+    TrainingSettings,
+)
 from swarmmap.shared.config import LearnerSettings
 from swarmmap.shared.graphs import metropolis_weights
 from swarmmap.shared.layout import StateLayout, state_copies
@@ -35,24 +42,32 @@ class RuleChoice:
     graph: dict[int, set[int]]
     robot: int
     public: Callable[[], np.ndarray | None] | None = None  # what the neighbours hold of this node's State
+    robust: RobustSettings = RobustSettings()
 
     @classmethod
     def of(cls, s: LearnerSettings, graph: dict[int, set[int]], robot: int,
            public: Callable[[], np.ndarray | None] | None = None) -> RuleChoice:
-        return cls(DinnoSettings.of(s), s.consensus, ConsensusSettings.of(s), RegularizationSettings.of(s), graph, robot, public)
+        return cls(DinnoSettings.of(s), s.consensus, ConsensusSettings.of(s), RegularizationSettings.of(s), graph, robot, public,
+                   RobustSettings.of(s))
+
+    def bound(self, inputs: NodeInputs, whole_state: bool = False) -> PullBound | None:
+        """Robust consensus's bound on each link's pull (None when off)."""
+        if not self.robust.on:
+            return None
+        return PullBound(inputs.layout, self.robust.pull_factor, next(inputs.model.parameters()).device, whole_state)
 
 
 def _dinno(inputs: NodeInputs, c: RuleChoice) -> Node:
     rule = consensus_rule(c.consensus, inputs.model, c.consensus_settings)
-    return DinnoNode(inputs, c.dinno, rule, regularization(inputs.model, c.regularization), c.public)
+    return DinnoNode(inputs, c.dinno, rule, regularization(inputs.model, c.regularization), c.public, c.bound(inputs))
 
 
 NODES: dict[str, Callable[[NodeInputs, RuleChoice], Node]] = {
     "dinno": _dinno,
     "individual": _dinno,
     "centralized": _dinno,
-    "dsgd": lambda inputs, c: DsgdNode(inputs, metropolis_weights(c.graph, c.robot), c.robot),
-    "dsgt": lambda inputs, c: DsgtNode(inputs, metropolis_weights(c.graph, c.robot), c.robot),
+    "dsgd": lambda inputs, c: DsgdNode(inputs, metropolis_weights(c.graph, c.robot), c.robot, c.bound(inputs)),
+    "dsgt": lambda inputs, c: DsgtNode(inputs, metropolis_weights(c.graph, c.robot), c.robot, c.bound(inputs, whole_state=True)),
 }
 
 

@@ -1,16 +1,21 @@
-"""Which neighbour States a node takes: the defence against a member that sends garbage.
+"""Which neighbour States a node takes, each on its own: the first defence against a member that
+sends garbage (the round's States are then judged together: :mod:`~swarmmap.services.learner.robust`).
 
 Honest neighbours start from the same initialisation and consensus keeps them close, so a State
 whose parameters are not finite, constant (e.g. all zero) or farther from this node's own than
-``max_distance`` times the norm of its own is refused (:func:`implausible`). Without a reference
-(a node catching up with its team holds stale parameters) only the tests that need none apply.
-:class:`StateScreen` is the learner's check: a State's size first, then its parameters.
+``max_distance`` times the norm of its own is refused (:func:`implausible`). A Bayesian
+network's means and rho are judged apart (its rho, about -5 each, would otherwise make up almost
+all of the norm and hide any move of the means). Every State is judged against the node's own
+parameters, also when they are a few rounds old (a node that resumed or caught up with its team).
+:class:`StateScreen` is the learner's check: a State's size, whatever it carries after the
+parameters finite, then its parameters.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from swarmmap.shared.bnn import is_rho
 from swarmmap.shared.layout import StateLayout
 
 
@@ -22,8 +27,11 @@ def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float)
         return "non-finite parameters"
     if theirs.size > 1 and np.ptp(theirs) == 0:
         return f"constant parameters ({float(theirs[0]):g} everywhere)"
-    if own is None:
-        return None
+    return None if own is None else too_far(theirs, own, max_distance)
+
+
+def too_far(theirs: np.ndarray, own: np.ndarray, max_distance: float) -> str | None:
+    """Why ``theirs`` lies farther from ``own`` than ``max_distance`` times the norm of ``own``, or None."""
     scale = float(np.linalg.norm(own))
     distance = float(np.linalg.norm(theirs.astype(np.float64) - own))
     if scale > 0 and distance > max_distance * scale:
@@ -31,15 +39,39 @@ def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float)
     return None
 
 
+def groups(layout: StateLayout) -> list[tuple[str, np.ndarray]]:
+    """The parts of a State's parameters judged apart: a Bayesian network's means (with every
+    other parameter) and its rho; a deterministic network's parameters as one."""
+    rho = np.zeros(layout.param_count, bool)
+    for name, at, n in layout.tensors:
+        rho[at : at + n] = is_rho(name)
+    if not rho.any():
+        return [("parameters", np.arange(layout.param_count))]
+    return [("means", np.flatnonzero(~rho)), ("rho", np.flatnonzero(rho))]
+
+
 class StateScreen:
     """``screen(theirs, own)``: why a neighbour's State is refused, or None. DSGT's States carry
-    its gradient tracker and RAMEN's its counts too: the parameters are judged."""
+    its gradient tracker and RAMEN's its counts after the parameters: those must be finite."""
 
     def __init__(self, layout: StateLayout, max_distance: float):
         self.layout, self.max_distance = layout, max_distance
+        self.groups = groups(layout)
 
     def __call__(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
         if theirs.size != self.layout.size:
             return f"{theirs.size} values, this node's State has {self.layout.size}"
-        params_of = self.layout.params_of
-        return implausible(params_of(theirs), None if own is None else params_of(own), self.max_distance)
+        extra = self.layout.extra_of(theirs)
+        if extra.size and not np.isfinite(extra).all():
+            return "non-finite values after the parameters"
+        mine, yours = (None if own is None else self.layout.params_of(own)), self.layout.params_of(theirs)
+        why = implausible(yours, None, self.max_distance)
+        if why is not None or mine is None:
+            return why
+        if mine.shape != yours.shape:
+            return f"{yours.size} parameters, expected {mine.size}"
+        for name, at in self.groups:
+            why = too_far(yours[at], mine[at], self.max_distance)
+            if why is not None:
+                return why if len(self.groups) == 1 else f"{name}: {why}"
+        return None

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.algorithm1 import Algorithm1, RoundLoop
+from swarmmap.services.learner.attacks import HostileTransport
 from swarmmap.services.learner.centralized import train_centralized
 from swarmmap.services.learner.checkpoints import Checkpoints
 from swarmmap.services.learner.clock import ClockExchange
@@ -52,6 +53,7 @@ from swarmmap.services.learner.metrics import consensus_error, validation_bce
 from swarmmap.services.learner.node import warm_up
 from swarmmap.services.learner.outputs import write_outputs
 from swarmmap.services.learner.registry import RuleChoice, make_node, node_inputs
+from swarmmap.services.learner.robust import RoundScreen
 from swarmmap.services.learner.screening import StateScreen
 from swarmmap.services.learner.settings import ScheduleSettings, exchange_rules
 from swarmmap.services.learner.subrounds import SubRounds
@@ -131,14 +133,14 @@ class RobotLearner:
             compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank,
                                     list(inputs.layout.matrices))
             transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
+            transport = hostile(cfg, self.robot, transport, inputs.layout)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
             if s.compression in CHAINED_ENCODINGS:
                 public = lambda: compressor.replica  # noqa: E731  (the consensus terms use what the neighbours hold)
-        coverage = inputs.coverage
         self.node = make_node(s.algorithm, inputs, RuleChoice.of(s, self.graph, self.robot, public))
-        if coverage is not None:
-            log.info("robot %d: noise-contrastive prior on %.0f%% of the map (cells of %.2f m farther than %.2f m "
-                     "from its data)", self.robot, 100 * coverage.uncovered_fraction(), coverage.cell, coverage.margin)
+        if (c := inputs.coverage) is not None:
+            log.info("robot %d: noise-contrastive prior on %.0f%% of the map (cells of %.2f m farther than %.2f m from its "
+                     "data)", self.robot, 100 * c.uncovered_fraction(), c.cell, c.margin)
         if resume:
             self.resume()
         self.rounds = SubRounds(self.node, ScheduleSettings.of(s), self.report, save=self.save if self.checkpoints else None,
@@ -230,13 +232,14 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
     s, node, rounds = learner.s, learner.node, learner.rounds
     start = node.state() if learner.start_state is None else learner.start_state
     rules, screen = exchange_rules(s), StateScreen(node.layout, s.max_state_distance)
+    round_screen = RoundScreen(node.layout, s.robust_spread_factor) if s.robust else None
     if s.exchange_every_s > 0:
         final = ClockExchange(learner.robot, learner.neighbours, rounds.clock_update, transport, s.exchange_every_s, rules,
                               check=screen, forget=rounds.forget, stats=learner.stats, stop=stop
                               ).run(start, s.rounds, learner.start_round)
     else:
         machine = Algorithm1(learner.robot, learner.neighbours, rounds.exchange_update, transport, rules, check=screen,
-                             rejoin=node.rejoin, stats=learner.stats, stop=stop)
+                             screen=round_screen, rejoin=node.rejoin, stats=learner.stats, stop=stop)
         final = RoundLoop(machine).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
     codec, stats = learner.codec, learner.stats
     if codec is not None and (stats.missed or codec.ignored or codec.unusable):
@@ -262,6 +265,13 @@ def state_links(learner: RobotLearner, link: Link, compressor: Compressor, cover
         coverage = None
     return StateCodec(link, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
                       position=(lambda: learner.collector.position) if dynamic else None, coverage=coverage)
+
+
+def hostile(cfg: RunConfig, robot: int, transport: Transport, layout: StateLayout) -> Transport:
+    """``transport``, or, for a robot of ``faults.attackers``, one that lies to its neighbours (tests, bench/)."""
+    if robot not in cfg.faults.attackers or cfg.faults.attack == "none":
+        return transport
+    return HostileTransport(transport, robot, cfg.faults.attack, layout, cfg.faults.seed)
 
 
 def compute_slots(cfg: RunConfig, robot: int) -> AbstractContextManager:

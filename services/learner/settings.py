@@ -72,10 +72,25 @@ class ConsensusSettings:
 
     min_weight: float = 0.05  # sigma: a pull stays within [this, 2 - this] x DiNNO's
     memory_rounds: int = 100  # sigma: how long an outdated State keeps pulling, its sigma widened
+    max_weight: float | None = None  # sigma: at most this x DiNNO's pull, the target as far (None: 2 - min_weight, the pull only)
 
     @classmethod
     def of(cls, s: LearnerSettings) -> ConsensusSettings:
-        return cls(s.consensus_min_weight, s.sigma_memory_rounds)
+        return cls(s.consensus_min_weight, s.sigma_memory_rounds, min(s.sigma_max_weight, 2 - s.consensus_min_weight)
+                   if s.robust else None)
+
+
+@dataclass(frozen=True)
+class RobustSettings:
+    """Robust consensus (:mod:`~swarmmap.services.learner.robust`); ``on`` False: none."""
+
+    on: bool = True
+    spread_factor: float = 4.0
+    pull_factor: float = 3.0
+
+    @classmethod
+    def of(cls, s: LearnerSettings) -> RobustSettings:
+        return cls(s.robust, s.robust_spread_factor, s.robust_pull_factor)
 
 
 @dataclass(frozen=True)

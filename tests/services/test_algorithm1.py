@@ -433,31 +433,56 @@ def test_a_faulty_link_polled_without_waiting_still_delivers():
 
 def test_on_a_clock_states_near_the_team_pass_and_hostile_ones_are_refused():
     """The robots train apart between exchanges: a State far from this node's parameters but near
-    a neighbour's newest passes; zeros, NaNs and a vector far from everyone are refused, and of a
-    flood only each sender's newest is judged."""
+    another neighbour's newest passes; zeros, NaNs, a vector far from everyone, and States that
+    grow 1.45 x an exchange, each near the sender's own last, are refused (a State never vouches
+    for the next), and of a flood only each sender's newest is judged."""
     hub = MemoryHub(COMPLETE3)
     own = 1 + 0.1 * np.arange(8)
-    first, drifted = own + 2.0, own + 2.5  # node 1 trained apart: far from own, near its last
-    hostile = [np.zeros(8), np.full(8, np.nan), np.full(8, 40.0) + np.arange(8)]
-    hub.transport(1).send_state(0, first)
+    near, apart = own + 0.2, own + 1.5  # node 2 near this node; node 2 then trained apart
+    hostile = [np.zeros(8), np.full(8, np.nan), np.full(8, 40.0) + np.arange(8), 1.45 ** 4 * own]
+    growing = [1.45 ** k * own for k in range(1, 5)]  # node 1: each 1.45 x its last
+    hub.transport(2).send_state(0, near)
     taken = []
 
     def update(k, theta, fresh):  # what arrives while round k trains is taken before round k + 1
-        taken.extend((j, float(v[0])) for j, v in fresh.items())
+        taken.extend((j, round(float(v[0]), 3)) for j, v in fresh.items())
         if k < len(hostile):
             for r in range(5):  # a flood: the newest counts
-                hub.transport(2).send_state(10 * k + r, hostile[k])
-        if k == len(hostile) - 1:
-            hub.transport(1).send_state(4, drifted)
+                hub.transport(1).send_state(10 * k + r, growing[k] if r == 4 else hostile[k])
+        if k == 1:
+            hub.transport(2).send_state(4, apart)
+        if k == 2:
+            hub.transport(1).send_state(50, apart + 0.05)  # far from this node, near node 2's newest: passes
+        return theta
+
+    stats = ExchangeStats()
+    run_timed(0, {1, 2}, 5, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
+              check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
+    # 1.45 x own is 0.45 of own's norm away and passes once; 1.45^2 x own does not, near as it lies to
+    # the last (and far from everyone else); node 1's State near node 2's newest passes.
+    assert taken == [(2, 1.2), (1, 1.45), (2, 2.5), (1, 2.55)], taken
+    assert stats.refused["implausible"] == 1, stats.refused  # (its last, older than one taken, is only ignored)
+
+
+def test_on_a_clock_a_neighbour_that_says_two_things_for_one_round_is_left_out():
+    hub = MemoryHub(COMPLETE3)
+    own = 1 + 0.1 * np.arange(8)
+    taken = []
+
+    def update(k, theta, fresh):
+        taken.extend((k, j) for j in fresh)
+        if k == 0:
+            hub.transport(1).send_state(3, own + 0.01)
+        if k == 1:
+            hub.transport(1).send_state(3, own - 0.02)  # another State for its round 3
+        if k == 2:
+            hub.transport(1).send_state(4, own)  # never heard again
         return theta
 
     stats = ExchangeStats()
     run_timed(0, {1, 2}, 4, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
               check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
-    # Nothing taken yet: the first State passes on finiteness alone (node 0 might be the one behind);
-    # then node 1's drifted State is near its last, and node 2's are refused, one a round.
-    assert taken == [(1, 3.0), (1, 3.5)]
-    assert sum(stats.refused.values()) == 3
+    assert taken == [(1, 1)] and stats.refused["equivocation"] == 1
 
 
 def test_the_inbox_bounds_what_one_neighbour_can_queue_and_never_holds_another_back():
@@ -473,3 +498,96 @@ def test_the_inbox_bounds_what_one_neighbour_can_queue_and_never_holds_another_b
     assert [e.sender for e in got] == [1] * 8 + [2] and [e.round for e in got[:8]] == list(range(8))
     assert inbox.get(0.01) is None
     assert inbox.put(Envelope("state", 1, 1000)) and inbox.get(0.1).round == 1000
+
+
+def test_a_neighbour_that_says_two_things_for_one_round_is_left_out_for_good(caplog):
+    """Node 2 sends, for every round, its State and a second, different but plausible one: the
+    others ban it at its first lie, finish without it, and their duplicates (honest resends, equal)
+    ban nobody."""
+    graph = COMPLETE3
+    hub = MemoryHub(graph)
+    init = {i: np.linspace(1, 2, 8) + 0.01 * i for i in graph}
+
+    class Equivocating:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def new_state(self, n):
+            return np.empty(n)
+
+        def send_state(self, round, params):
+            self.inner.send_state(round, params)
+            self.inner.send_state(round, params * 1.01)  # plausible, and another word
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    stats = {i: ExchangeStats() for i in graph}
+    transports = {0: hub.transport(0), 1: hub.transport(1), 2: Equivocating(hub.transport(2))}
+    results, errors = in_threads(graph, lambda i: run_algorithm1(
+        i, graph[i], 6, init[i], mixing_update(i), transports[i], resend_after=0.2, linger=0.3, stats=stats[i],
+        peer_timeout=20, check_state=lambda theirs, own: implausible(theirs, own, 0.5)))
+    assert not errors and set(results) == {0, 1, 2}
+    assert stats[0].refused["equivocation"] == 1 and stats[1].refused["equivocation"] == 1
+    assert stats[2].refused["equivocation"] == 0  # nobody honest is taken for a liar
+    assert "sent two different States for round 0" in caplog.text
+
+
+def test_a_neighbour_that_completes_rounds_without_sending_its_state_is_left_out_as_silent(caplog):
+    """A stall: node 2's RoundCompletes come, its States never do. It counts as silent: after
+    silent_after the others leave it out and finish."""
+    graph = COMPLETE3
+    hub = MemoryHub(graph)
+    done = threading.Event()
+
+    def staller():
+        while not done.is_set():
+            for r in range(6):
+                for q in (0, 1):
+                    hub.queues[q].put(Envelope("complete", 2, r))
+            done.wait(0.05)
+
+    init = {i: np.linspace(1, 2, 8) + 0.01 * i for i in (0, 1)}
+    stats, results = {0: ExchangeStats(), 1: ExchangeStats()}, {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], 5, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
+                                    linger=0.2, stats=stats[i], silent_after=1.0, peer_timeout=20)
+
+    threads = [threading.Thread(target=staller)] + [threading.Thread(target=node, args=(i,)) for i in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads[1:]:
+        t.join(30)
+    done.set()
+    threads[0].join(5)
+    assert set(results) == {0, 1} and all(s.left_out >= 1 for s in stats.values())
+    assert "neighbour 2 has been silent" in caplog.text
+
+
+def test_a_lone_state_from_far_ahead_does_not_take_a_resumed_node_to_the_end():
+    """A node resumed at round 2 of 40 with three neighbours: one State of round 40 (the end) is
+    refused as far-future; once two neighbours say round 20, it jumps there (and no further)."""
+    graph = {0: {1, 2, 3}, 1: {0}, 2: {0}, 3: {0}}
+    hub = MemoryHub(graph)
+    own = np.linspace(1, 2, 8)
+    hub.queues[0].put(Envelope("state", 1, 40, own + 0.01))  # the end, from one neighbour only
+    stats, rounds_seen = ExchangeStats(), []
+    stop = threading.Event()
+
+    def update(k, theta, peers):
+        rounds_seen.append(k)
+        stop.set()  # one update is enough: where did it jump to?
+        return theta
+
+    def feed():
+        threading.Event().wait(0.3)
+        hub.queues[0].put(Envelope("state", 2, 20, own + 0.02))
+        hub.queues[0].put(Envelope("state", 3, 20, own + 0.03))
+
+    threading.Thread(target=feed, daemon=True).start()
+    with pytest.raises(InterruptedError):
+        run_algorithm1(0, graph[0], 40, own, update, hub.transport(0), start_round=2, resumed=True, stats=stats,
+                       keep_rounds=4, resend_after=5.0, stop=stop, peer_timeout=20,
+                       check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
+    assert rounds_seen == [20] and stats.caught_up == 1 and stats.refused["far-future"] >= 1

@@ -17,7 +17,7 @@ from swarmmap.services.learner.settings import ConsensusSettings
 RULES = {
     "dinno": lambda model, s: DinnoRule(),
     "ramen": lambda model, s: RamenRule(sum(p.numel() for p in model.parameters()), next(model.parameters()).device),
-    "sigma": lambda model, s: SigmaRule(model, s.min_weight, s.memory_rounds),
+    "sigma": lambda model, s: SigmaRule(model, s.min_weight, s.memory_rounds, s.max_weight),
 }
 
 

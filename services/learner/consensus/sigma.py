@@ -41,11 +41,15 @@ def sigma_pairs(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rho_at: torch.Tensor,
-                  min_weight: float, widen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  min_weight: float, widen: torch.Tensor | None = None, max_weight: float | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per neighbour (rows of ``thj``), the target and weight of every parameter.
 
     ``widen`` (one row per neighbour, one column per mean; None: every State is this round's)
-    is what each outdated State's variance has grown by (:meth:`SigmaRule.widening`)."""
+    is what each outdated State's variance has grown by (:meth:`SigmaRule.widening`).
+    ``max_weight`` (robust consensus) bounds what a neighbour's self-reported certainty buys it:
+    the share s within [1 - max_weight / 2, max_weight / 2], so the weight at most max_weight and
+    the target at most that far of the way (None: the weight clamped to 2 - min_weight only)."""
     var_i = F.softplus(th_i[rho_at]).square()
     var_j = F.softplus(thj[:, rho_at]).square()
     share = torch.full_like(thj, 0.5)
@@ -57,6 +61,8 @@ def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rh
         share *= (both / (both + widen)).mean(1, keepdim=True)
         share[:, mu_at] = var_i / (both + widen)
         floor[(widen > 0).any(1)] = 0.0
+    if max_weight is not None:  # both ends of a link clamp alike (s_ji = 1 - s_ij): its two duals still cancel
+        share[:, mu_at] = share[:, mu_at].clamp(min=1 - max_weight / 2, max=max_weight / 2)
     z = th_i + share * (thj - th_i)
     a = 2 * share
     a[:, mu_at] = torch.maximum(a[:, mu_at], floor).clamp(max=2 - min_weight)
@@ -68,9 +74,9 @@ class SigmaRule:
 
     name = "sigma"
 
-    def __init__(self, model: torch.nn.Module, min_weight: float, memory_rounds: int):
+    def __init__(self, model: torch.nn.Module, min_weight: float, memory_rounds: int, max_weight: float | None = None):
         self.mu_at, self.rho_at = sigma_pairs(model)
-        self.min_weight, self.memory_rounds = min_weight, memory_rounds
+        self.min_weight, self.memory_rounds, self.max_weight = min_weight, memory_rounds, max_weight
         # each parameter's move a round, smoothed over rounds (its mean and mean square)
         self.drift: tuple[torch.Tensor, torch.Tensor] | None = None
         self.last_theta: tuple[int, torch.Tensor] | None = None
@@ -102,7 +108,7 @@ class SigmaRule:
 
     def targets(self, ages, th_i, thj, extras):
         widen = None if self.drift is None or not bool((ages > 0).any()) else self.widening(ages)
-        return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.min_weight, widen)
+        return sigma_targets(th_i, thj, self.mu_at, self.rho_at, self.min_weight, widen, self.max_weight)
 
     def dual_step(self, rho: float, th_i: torch.Tensor, th_j: torch.Tensor, z, a: torch.Tensor) -> torch.Tensor:
         return rho * a * (2 - a) * (th_i - th_j)
