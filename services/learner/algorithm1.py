@@ -55,12 +55,9 @@ log = logging.getLogger("learner")
 
 
 class Algorithm1:
-    """One node's rounds. ``update(round, state, {peer: state})`` is its NODEUPDATE; it sees
-    exactly the States of ``round`` of the neighbours it has. ``check(theirs, own)`` may refuse
-    a State (it returns why; counted in ``stats.refused``, as States more than ROUNDS_AHEAD rounds
-    ahead). A node ``resumed`` behind its team, before it has finished a round with a neighbour,
-    or one left behind (stuck in a round for longer than ``silent_after``) jumps to the round of
-    a plausible State further ahead than the team can replay, from ``rejoin(own, {peer: state})``."""
+    """One node's rounds. ``update(round, state, {peer: state})`` is its NODEUPDATE, given exactly the
+    round's States of the neighbours it has; ``check(theirs, own)`` refuses a State on its own (why),
+    ``screen(own, {peer: state})`` the round's together; ``rejoin`` gives the State a jump starts from."""
 
     def __init__(self, node_id: int, neighbours: set[int], update: NodeUpdate, transport: Transport,
                  rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None, screen: RoundCheck | None = None,
