@@ -4,8 +4,9 @@ sends garbage (the round's States are then judged together: :mod:`~swarmmap.serv
 Honest neighbours start from the same initialisation and consensus keeps them close, so a State
 whose parameters are not finite, constant (e.g. all zero) or farther from this node's own than
 ``max_distance`` times the norm of its own is refused (:func:`implausible`). A Bayesian
-network's means and rho are judged apart (its rho, about -5 each, would otherwise make up almost
-all of the norm and hide any move of the means). Every State is judged against the node's own
+network's means and rho are also judged apart, each against its own norm (at GROUP_FACTOR times
+the distance: early in training the means move fast for their size): its rho, about -5 each,
+makes up almost all of the whole norm and would hide any move of the means. Every State is judged against the node's own
 parameters, also when they are a few rounds old (a node that resumed or caught up with its team).
 :class:`StateScreen` is the learner's check: a State's size, whatever it carries after the
 parameters finite, then its parameters.
@@ -16,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.shared.bnn import is_rho
+
+GROUP_FACTOR = 4  # a Bayesian network's means (or rho) may lie this many times max_distance of their own norm away
 from swarmmap.shared.layout import StateLayout
 
 
@@ -65,13 +68,11 @@ class StateScreen:
         if extra.size and not np.isfinite(extra).all():
             return "non-finite values after the parameters"
         mine, yours = (None if own is None else self.layout.params_of(own)), self.layout.params_of(theirs)
-        why = implausible(yours, None, self.max_distance)
-        if why is not None or mine is None:
+        why = implausible(yours, mine, self.max_distance)
+        if why is not None or mine is None or len(self.groups) == 1:
             return why
-        if mine.shape != yours.shape:
-            return f"{yours.size} parameters, expected {mine.size}"
-        for name, at in self.groups:
-            why = too_far(yours[at], mine[at], self.max_distance)
+        for name, at in self.groups:  # each part on the scale of its own norm, more loosely (early moves are large)
+            why = too_far(yours[at], mine[at], GROUP_FACTOR * self.max_distance)
             if why is not None:
-                return why if len(self.groups) == 1 else f"{name}: {why}"
+                return f"{name}: {why}"
         return None
