@@ -41,7 +41,7 @@ from swarmmap.shared.runtime import setup_logging, shutdown_event
 from swarmmap.shared.secrets import Signer, identities, router_names
 
 CLAIMS_ENV = "SWARMMAP_ROBOT_CLAIMS"
-SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer
+SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 
 log = logging.getLogger("claim")
 
@@ -114,23 +114,37 @@ def start(environ: dict[str, str] | None = None, serve: bool = False, stop: thre
     if verdict != "ok":
         return 2
     if serve and signer is not None:
-        sign_until_over(signer, cfg, stop or threading.Event())
+        sign_until_over(signer, cfg, stop or threading.Event(), folder / "running" if folder is not None else None)
     return 0
 
 
-def sign_until_over(signer: Signer, cfg: RunConfig, stop: threading.Event) -> None:
+def sign_until_over(signer: Signer, cfg: RunConfig, stop: threading.Event, running: Path | None = None) -> None:
     """Sign the services' requests until the run is over: its summary written (the recorder
-    writes it last) and the recorder's linger time passed, or until stopped."""
+    writes it last) and every service gone (none holds its shared lock on ``running``, see
+    deploy/docker/entrypoint.sh), at most the recorder's linger time after; or until stopped."""
     summary, began = cfg.run_dir / "summary.json", time.time()
     over_at = None
     while not stop.is_set():
         signer.serve_once()
         if over_at is None and summary.exists() and summary.stat().st_mtime >= began:
             over_at = time.monotonic()
-            log.info("the run is over (%s); no more certificates once the recorder has left", summary)
-        if over_at is not None and time.monotonic() - over_at > cfg.recorder.linger_s + SIGNER_LINGER_S:
+            log.info("the run is over (%s); no more certificates once its services have left", summary)
+        if over_at is not None and (nobody_running(running) or time.monotonic() - over_at > cfg.recorder.linger_s + SIGNER_LINGER_S):
             return
         stop.wait(0.2)
+
+
+def nobody_running(running: Path | None) -> bool:
+    """Whether no service holds its shared lock on ``running`` (False when there is no such file)."""
+    if running is None or not running.exists():
+        return False
+    with open(running, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        fcntl.flock(f, fcntl.LOCK_UN)
+        return True
 
 
 def begin(environ: dict[str, str]) -> RunConfig:

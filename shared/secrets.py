@@ -16,7 +16,7 @@ own CA, and a certificate of one run matches no subject of another's policy. Run
 credentials folder keep apart: each has its own sub-folders.
 
 The CA key never reaches a service. :func:`write_credentials` issues every certificate and then
-discards the CA key, unless asked to keep it (``swarmmap secrets --keep-ca DIR``, to issue
+discards the CA key, unless asked to keep it (``swarmmap secrets --zenoh-keep-ca DIR``, to issue
 more certificates later) in a folder outside the credentials and the run directory. Compose
 issues no file at all up front: each container makes its own key, and a signing step that holds
 the CA key in memory signs a certificate for the identity the container claimed
@@ -165,7 +165,7 @@ class Authority:
 
     @classmethod
     def load(cls, folder: Path, run: str) -> Authority | None:
-        """The CA of ``run`` kept in ``folder`` (``swarmmap secrets --keep-ca``), or None."""
+        """The CA of ``run`` kept in ``folder`` (``swarmmap secrets --zenoh-keep-ca``), or None."""
         key_path, cert_path = folder / f"{run}.ca.key", folder / f"{run}.ca.pem"
         if not (key_path.is_file() and cert_path.is_file()):
             return None
@@ -239,10 +239,11 @@ def write_credentials(secrets: Path, run: str, names: list[str], server_names: l
                                                           if complete(p)]
     authority = Authority.load(keep_ca, run) if keep_ca is not None else None
     if existing and missing and authority is None:
-        raise SecretsError(f"{secrets} holds credentials of run {run} but none for {', '.join(missing)}, and that run's CA "
-                           "key was discarded once its certificates were issued. Give this run another id, or remove "
-                           f"{secrets}/*@{run} to start its credentials afresh (services still running with the old ones "
-                           "will be refused), or keep a CA next time: swarmmap secrets --keep-ca DIR")
+        raise SecretsError(f"{secrets} holds credentials of run {run} but none for {', '.join(missing)}, and no kept CA key "
+                           "of that run to issue them with (zenoh.keep_ca: the key is discarded once the certificates are "
+                           "issued unless kept). Give the folder where it was kept (--zenoh-keep-ca DIR), give this run another "
+                           f"id, or remove {secrets}/*@{run} to start its credentials afresh (services still running with the "
+                           "old ones will be refused)")
     if not missing:
         return []
     if authority is not None and existing:

@@ -56,6 +56,11 @@ elif [ -n "$shared" ]; then
             echo "this run did not start (${shared}/start): ${verdict:-the start container has not started it}" >&2
             exit 2
         fi
+        # A shared lock held for as long as the service runs: the start container ends once none is held.
+        if [ -w "$shared" ]; then
+            exec 9>>"$shared/running"
+            flock -s 9
+        fi
         ;;
     esac
 fi

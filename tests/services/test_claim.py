@@ -6,6 +6,7 @@ identity to one key, writes no private key and its certificates carry a secure r
 
 from __future__ import annotations
 
+import fcntl
 import json
 import multiprocessing
 import socket
@@ -13,7 +14,7 @@ import threading
 
 import pytest
 
-from swarmmap.services.claim import ClaimError, claim_robot, forget_claims, start
+from swarmmap.services.claim import ClaimError, claim_robot, forget_claims, nobody_running, start
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ZenohSettings, task_robot
 from swarmmap.shared.protocol import Keys
@@ -147,3 +148,12 @@ def test_the_signer_issues_each_identity_to_one_key_and_no_private_key_is_shared
     assert sorted(p.relative_to(tmp_path / "containers").parts[0] for p in keys_on_disk) == ["learner-a", "learner-b", "router"], \
         f"private keys outside the containers' own folders: {keys_on_disk}"
     assert not (run_dir / "secrets").exists()
+
+
+def test_the_start_sees_when_no_service_runs_any_more(tmp_path):
+    running = tmp_path / "running"
+    assert not nobody_running(running)  # no service has ever started: not "over"
+    with open(running, "a") as service:  # what each service's entrypoint holds while it runs
+        fcntl.flock(service, fcntl.LOCK_SH)
+        assert not nobody_running(running)
+    assert nobody_running(running)
