@@ -205,6 +205,7 @@ def test_only_the_world_answers_the_map_query(run):
 
 def test_strangers_and_other_runs_cannot_connect(run, tmp_path):
     keys, folder, client = run
+    client = client.model_copy(update={"connect_timeout_s": 2})  # each is refused at once; Zenoh retries until then
     with pytest.raises(ConfigError, match="cannot open a session"):  # no certificate at all: plain TCP
         Bus.open(client.model_copy(update={"insecure": True, "mode": "client"}), keys, "learner", 1)
     write_credentials(folder, "another-run", identities(ROBOTS), router_names(client.connect))  # the same folder
@@ -247,7 +248,7 @@ def test_a_client_checks_the_routers_name(tmp_path, run_id):
     fake = ZenohSettings(mode="router", listen=[endpoint], multicast_scouting=False, secrets=folder)
     with Bus.open(fake, keys, "learner", 0, policy=access_policy(keys, ROBOTS)):  # learner 0 listening as a router
         with pytest.raises(ConfigError, match="cannot open a session"):
-            Bus.open(ZenohSettings(connect=[endpoint], multicast_scouting=False, secrets=folder, connect_timeout_s=5),
+            Bus.open(ZenohSettings(connect=[endpoint], multicast_scouting=False, secrets=folder, connect_timeout_s=2),
                      keys, "learner", 1)
 
 
