@@ -10,14 +10,17 @@ container is the container's id: a container that restarts gets its own id back,
 than the run has robots is refused. Outside containers, processes that share a host name share
 a claim: give them ``--robot`` instead.
 
-``python -m swarmmap.services.claim start`` is the first step of a compose run (the recorder's
-container runs it before the recorder, see deploy/docker/entrypoint.sh): from the same
-environment as every service, it checks the run directory (the same settings: the run resumes;
-a finished run with other settings: kept as ``RUN_DIR-<its end>`` beside it, and this run
-starts afresh; an unfinished one with other settings: refused, as ``swarmmap up`` refuses it),
-writes the run's ``config.yaml`` and credentials, forgets the claims of the containers of an
-earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or why not), which every
-other container of the run reads before it starts its service.
+``python -m swarmmap.services.claim start`` is the first step of a compose run (the ``start``
+container runs it, see deploy/docker/entrypoint.sh; it runs no service and joins no Zenoh
+session): from the same environment as every service, it checks the run directory (the same
+settings: the run resumes; a finished run with other settings: kept as ``RUN_DIR-<its end>``
+beside it, and this run starts afresh; an unfinished one with other settings: refused, as
+``swarmmap up`` refuses it), writes the run's ``config.yaml``, makes the run's CA (its key in
+this process's memory only: :class:`~swarmmap.shared.secrets.Signer`), forgets the claims of
+the containers of an earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or
+why not), which every other container of the run reads before it starts its service. Then it
+signs each service's certificate (each container makes its own key and asks for the identity
+it claimed, ``zenoh.signer``) until the run is over.
 """
 
 from __future__ import annotations
@@ -28,14 +31,17 @@ import logging
 import os
 import socket
 import sys
+import threading
 import time
 from pathlib import Path
 
 from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.config import ConfigError, fail, resolve
-from swarmmap.shared.runtime import setup_logging
+from swarmmap.shared.config import ConfigError, RunConfig, fail, resolve
+from swarmmap.shared.runtime import setup_logging, shutdown_event
+from swarmmap.shared.secrets import Signer, identities, router_names
 
 CLAIMS_ENV = "SWARMMAP_ROBOT_CLAIMS"
+SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 
 log = logging.getLogger("claim")
 
@@ -80,13 +86,19 @@ def forget_claims(folder: Path) -> None:
         path.unlink()
 
 
-def start(environ: dict[str, str] | None = None) -> int:
+def start(environ: dict[str, str] | None = None, serve: bool = False, stop: threading.Event | None = None) -> int:
     """Compose's first step of a run (see the module's docstring); returns the exit status and
-    leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start."""
+    leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start. With
+    ``zenoh.signer`` set, the run's signer is made before the verdict (so that no service sees
+    an earlier run's CA) and, with ``serve``, signs the services' requests until the run is over."""
     environ = os.environ if environ is None else environ
     folder = Path(environ[CLAIMS_ENV]) if environ.get(CLAIMS_ENV) else None
+    signer = None
     try:
-        begin(environ)
+        cfg = begin(environ)
+        if cfg.zenoh.signer is not None and not cfg.zenoh.insecure:
+            signer = Signer(cfg.zenoh.signer, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect))
+            log.info("signer of run %s in %s: its CA key is held in this process's memory only", cfg.run_id, cfg.zenoh.signer)
         if folder is not None:
             forget_claims(folder)
         verdict = "ok"
@@ -99,11 +111,45 @@ def start(environ: dict[str, str] | None = None) -> int:
         print(verdict, file=sys.stderr)
     if folder is not None:
         atomic_write_text(folder / "start", verdict + "\n")
-    return 0 if verdict == "ok" else 2
+    if verdict != "ok":
+        return 2
+    if serve and signer is not None:
+        sign_until_over(signer, cfg, stop or threading.Event(), folder / "running" if folder is not None else None)
+    return 0
 
 
-def begin(environ: dict[str, str]) -> None:
-    """The checks and writes of the start of a run; raises ConfigError naming what is wrong."""
+def sign_until_over(signer: Signer, cfg: RunConfig, stop: threading.Event, running: Path | None = None) -> None:
+    """Sign the services' requests until the run is over: its summary written (the recorder
+    writes it last) and every service gone (none holds its shared lock on ``running``, see
+    deploy/docker/entrypoint.sh), at most the recorder's linger time after; or until stopped."""
+    summary, began = cfg.run_dir / "summary.json", time.time()
+    over_at = None
+    while not stop.is_set():
+        signer.serve_once()
+        if over_at is None and summary.exists() and summary.stat().st_mtime >= began:
+            over_at = time.monotonic()
+            log.info("the run is over (%s); no more certificates once its services have left", summary)
+        if over_at is not None and (nobody_running(running) or time.monotonic() - over_at > cfg.recorder.linger_s + SIGNER_LINGER_S):
+            return
+        stop.wait(0.2)
+
+
+def nobody_running(running: Path | None) -> bool:
+    """Whether no service holds its shared lock on ``running`` (False when there is no such file)."""
+    if running is None or not running.exists():
+        return False
+    with open(running, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        fcntl.flock(f, fcntl.LOCK_UN)
+        return True
+
+
+def begin(environ: dict[str, str]) -> RunConfig:
+    """The checks and writes of the start of a run; returns its config, or raises ConfigError
+    naming what is wrong."""
     from swarmmap.services.launcher import other_run_in, prepare, write_config
     from swarmmap.shared.floorplan import PlanError
     from swarmmap.shared.recording import RecordingError
@@ -123,6 +169,7 @@ def begin(environ: dict[str, str]) -> None:
         log.warning("%s held a finished run with other settings: kept beside it as %s; this run starts afresh",
                     cfg.run_dir, kept.name)
     log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
+    return cfg
 
 
 def keep_aside(run_dir: Path) -> Path:
@@ -139,12 +186,12 @@ def keep_aside(run_dir: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m swarmmap.services.claim start``."""
+    """``python -m swarmmap.services.claim start``: the start of a compose run, then its signer."""
     argv = sys.argv[1:] if argv is None else argv
     if argv != ["start"]:
         print("usage: python -m swarmmap.services.claim start", file=sys.stderr)
         return 2
-    return start()
+    return start(serve=True, stop=shutdown_event())
 
 
 if __name__ == "__main__":

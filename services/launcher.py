@@ -28,13 +28,11 @@ Rerun recording and its time per map).
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import os
 import re
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -56,7 +54,8 @@ from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.progress import TeamProgress, TraversalProgress
 from swarmmap.shared.protocol import Keys, Metrics, Scan
 from swarmmap.shared.recording import RecordingError, read_recording
-from swarmmap.shared.secrets import access_policy, write_secrets
+from swarmmap.shared.runtime import die_with_parent
+from swarmmap.shared.secrets import SecretsError, identities, router_names, write_credentials
 from swarmmap.shared.slots import slots_dir
 
 log = logging.getLogger("up")
@@ -66,18 +65,6 @@ log = logging.getLogger("up")
 FAILURE_GRACE_S = 30.0
 REFUSED = 2
 RESTARTABLE = ("learner", "lidar", "world")  # crashed ones are started again, up.restarts times each
-
-
-try:  # looked up here, not in the forked child, where only async-signal-safe work belongs
-    _prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
-except (OSError, AttributeError):  # not Linux: Ctrl-C and run/done still stop the services
-    _prctl = None
-
-
-def die_with_parent() -> None:
-    """In a child, before exec: get SIGTERM when ``up`` dies (even by SIGKILL), so no service outlives it."""
-    if _prctl is not None:
-        _prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
 
 
 def free_port() -> int:
@@ -127,17 +114,30 @@ def write_config(cfg: RunConfig) -> Path:
 
 
 def write_run_secrets(cfg: RunConfig) -> None:
-    """The run's CA, a certificate per service and the router's access policy in ``zenoh.secrets``."""
+    """The run's credentials in ``zenoh.secrets``: a folder per service with its own key, its
+    certificate and the run's CA certificate (shared/secrets.py). The CA key is discarded once
+    they are issued, or kept in ``zenoh.keep_ca``, which must lie outside what services read."""
     if cfg.zenoh.insecure:
         log.warning("INSECURE run %s: no TLS, no authentication, no access control (--zenoh-insecure)", cfg.run_id)
         return
-    policy = access_policy(Keys(cfg.key_prefix, cfg.run_id), cfg.robots, inproc_learner=cfg.learner.transport == "inproc")
-    names = write_secrets(cfg.zenoh.secrets, cfg.robots, policy)
-    log.info("credentials of run %s: a CA and %d certificates in %s (owner only)", cfg.run_id, len(names), cfg.zenoh.secrets)
+    if cfg.zenoh.signer is not None:  # compose: each service makes its own key and asks the run's signer
+        return
+    secrets, keep = cfg.zenoh.secrets.resolve(), cfg.zenoh.keep_ca
+    if keep is not None and any(keep.resolve().is_relative_to(p) for p in (secrets, cfg.run_dir.resolve() if cfg.run_dir else secrets)):
+        fail(f"config error:\n  zenoh.keep_ca: {keep} lies inside the credentials or the run directory, which services read; "
+             "keep the CA key elsewhere (e.g. ~/.swarmmap-ca)")
+    try:
+        issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect), keep_ca=keep)
+    except (SecretsError, OSError) as exc:
+        fail(f"config error:\n  zenoh.secrets: {exc}")
+    if issued:
+        kept = f"kept in {keep}" if keep is not None else "discarded"
+        log.info("credentials of run %s: %d services, each its own key in %s/<service>@%s (owner only); the CA key is %s",
+                 cfg.run_id, len(issued), secrets, cfg.run_id, kept)
 
 
 def run_secrets(cfg: RunConfig, stop: threading.Event) -> int:
-    """``swarmmap secrets``: write the run's credentials (for compose, or services started by hand)."""
+    """``swarmmap secrets``: write the run's credentials (for services started by hand)."""
     if cfg.zenoh.secrets is None:
         fail("config error:\n  zenoh.secrets: name the folder (--zenoh-secrets) or the run directory (--run-dir)")
     write_run_secrets(cfg)
@@ -279,8 +279,8 @@ class Launcher:
             self.spawn("router", 0, "--zenoh-mode", "router", "--zenoh-listen", self.router_endpoint,
                        "--set", "zenoh.connect=[]")
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
-                bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics)
-                bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add)
+                bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics, newest=1024)  # progress: never slows a publisher
+                bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add, newest=1024)
                 recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
             if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves (run/done)

@@ -27,9 +27,12 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import rerun as rr
@@ -48,8 +51,10 @@ from swarmmap.shared.models import StochasticNet, pick_device, set_flat
 from swarmmap.shared.networks import build_network, has_std
 from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.runtime import die_with_parent
 
 log = logging.getLogger("swarmmap.observer")
+WATCH_RING = 1024  # scans and metrics that may wait for the observer before the oldest are dropped
 FINAL_STATES_WAIT_S = 10.0  # once the run is over, how long the learners' final States may take to arrive
 
 ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
@@ -77,32 +82,54 @@ def blueprint(robots: int, bayesian: bool) -> rrb.Blueprint:
     return rrb.Blueprint(rrb.Horizontal(*parts), collapse_panels=True)
 
 
-def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> list[str]:
-    """Attach every sink the config asks for; returns their descriptions."""
+LOOPBACK = ("127.0.0.1", "::1", "localhost")
+
+
+def rerun_cli(*args: str, detach: bool = False) -> subprocess.Popen:
+    """``python -m rerun ARGS`` (Rerun's own viewer and servers, which take a bind address):
+    dying with this process, or, ``detach``-ed, staying open after it (a viewer window)."""
+    return subprocess.Popen([sys.executable, "-m", "rerun", *args], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=detach, preexec_fn=None if detach else die_with_parent)
+
+
+def check_bind(bind: str) -> None:
+    """Warn when the observer's servers listen beyond this machine."""
+    if bind not in LOOPBACK:
+        inside = " (in a container: only as far as its engine publishes the ports)" if Path("/.dockerenv").exists() else ""
+        log.warning("observer.bind %s: the web viewer and its gRPC server listen beyond loopback%s; whoever reaches them sees "
+                    "the run's plan, poses, scans and maps, and may log into the stream", bind, inside)
+
+
+def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> tuple[list[str], list[subprocess.Popen]]:
+    """Attach every sink the config asks for; returns their descriptions and the Rerun processes
+    started for them (a local viewer, the web viewer's server), to stop at the end. Servers
+    listen on ``observer.bind`` (loopback unless told otherwise)."""
     s = cfg.observer
-    sinks, names = [], []
+    sinks, names, procs = [], [], []
     if s.save is not None:
         s.save.parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(s.save)))
         names.append(f"file {s.save}")
     if s.spawn:
-        rr.spawn(port=s.grpc_port, connect=False)
+        rerun_cli("--port", str(s.grpc_port), "--bind", "127.0.0.1", detach=True)
         sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{s.grpc_port}/proxy"))
         names.append(f"spawned viewer on port {s.grpc_port}")
     if s.connect:
         sinks.append(rr.GrpcSink(s.connect))
         names.append(f"viewer at {s.connect}")
     if s.serve_web:
-        sinks.append(rr.GrpcServerSink(port=s.grpc_port))
-        names.append(f"web viewer http://127.0.0.1:{s.web_port} (gRPC {s.grpc_port})")
+        check_bind(s.bind)
+        sinks.append(rr.GrpcServerSink(bind_ip=s.bind, port=s.grpc_port))
+        names.append(f"web viewer http://{s.bind}:{s.web_port} (gRPC {s.grpc_port})")
     if not sinks:
         raise ConfigError("config error:\n  observer: no sink; set observer.save, observer.spawn, observer.connect "
                           "or observer.serve_web")
     rec.set_sinks(*sinks, default_blueprint=bp)
-    if s.serve_web:
-        rr.serve_web_viewer(web_port=s.web_port, open_browser=False,
-                            connect_to=f"rerun+http://127.0.0.1:{s.grpc_port}/proxy")
-    return names
+    if s.serve_web:  # the page only (the data stays on the gRPC server above), from Rerun's CLI, which binds where told
+        host = "127.0.0.1" if s.bind in ("0.0.0.0", "::") else s.bind
+        procs.append(rerun_cli("--serve-web", "--bind", s.bind, "--web-viewer-port", str(s.web_port),
+                               f"rerun+http://{host}:{s.grpc_port}/proxy"))
+    return names, procs
 
 
 @dataclass(frozen=True)
@@ -288,11 +315,21 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     s = cfg.observer
     torch.set_num_threads(s.torch_threads)
     device = pick_device(s.device)
-    keys = Keys(cfg.key_prefix, cfg.run_id)
     rec = rr.RecordingStream("swarmmap", recording_id=cfg.run_id)
     bp = blueprint(cfg.robots, has_std(cfg.network().kind))
-    sinks = open_sinks(cfg, rec, bp)
+    sinks, servers = open_sinks(cfg, rec, bp)
     log.info("observer of run %s: %s", cfg.run_id, "; ".join(sinks))
+    try:
+        return observe(cfg, stop, rec, device)
+    finally:
+        for proc in servers:
+            proc.terminate()
+            proc.wait()
+
+
+def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, device: torch.device) -> int:
+    """Watch the run until it is over, then write observer.json; returns the exit status."""
+    keys = Keys(cfg.key_prefix, cfg.run_id)
     obs = Observer(cfg, rec, device)
     mapping_done = threading.Event()
     worker = threading.Thread(target=obs.map_loop, args=(mapping_done,), name="maps")
@@ -305,9 +342,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
             log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.world_wait_s())
             return 3
         obs.on_world(world)
-        bus.subscribe(keys.scan("*"), Scan, obs.on_scan)
-        bus.subscribe(keys.metrics("*"), Metrics, obs.on_metrics)
-        bus.subscribe(keys.state("*"), State, obs.on_state, check=obs.check_state)
+        # A watcher: behind rings, so that logging to Rerun never slows the world or the learners.
+        bus.subscribe(keys.scan("*"), Scan, obs.on_scan, newest=WATCH_RING)
+        bus.subscribe(keys.metrics("*"), Metrics, obs.on_metrics, newest=WATCH_RING)
+        bus.subscribe(keys.state("*"), State, obs.on_state, check=obs.check_state, newest=max(8, 2 * cfg.robots))
         bus.announce(0)
         worker.start()
         stop.wait()

@@ -1,9 +1,11 @@
 """The router service: a Zenoh session in router mode, for discovery across hosts and containers.
 
 Run-book: ``swarmmap router --zenoh-listen tcp/0.0.0.0:7447``; other services then connect
-with ``--zenoh-connect tcp/<host>:7447``. Data still flows peer to peer where peers can reach
-each other; the router relays where they cannot. It exits when the run is over (``run/done``)
-and every other service of the run has left, or when stopped.
+with ``--zenoh-connect tcp/<host>:7447``. In a secure run (the default) every endpoint is TLS
+(``tcp/`` is served as ``tls/``, other protocols are refused; without ``--zenoh-listen`` it
+listens on ``tls/[::]:7447``), every other service is its client, and it enforces the run's
+access policy (:func:`run_policy`). It exits when the run is over (``run/done``) and every
+other service of the run has left, or when stopped.
 """
 
 from __future__ import annotations
@@ -14,15 +16,32 @@ import time
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig
+from swarmmap.shared.graphs import GraphError, run_graph
 from swarmmap.shared.protocol import Keys
+from swarmmap.shared.secrets import access_policy
 
 log = logging.getLogger("router")
+
+
+def run_policy(cfg: RunConfig) -> dict:
+    """The run's access policy (shared/secrets.py): learners read their neighbours' exchange
+    keys when the graph is known before the robots drive, every learner's otherwise."""
+    spec = cfg.graph()
+    neighbours = None
+    if spec.kind != "disk" and not spec.dynamic:
+        try:
+            neighbours = run_graph(spec, cfg.robots, None)
+        except GraphError:  # the learners refuse it themselves, naming it
+            neighbours = None
+    return access_policy(Keys(cfg.key_prefix, cfg.run_id), cfg.robots, inproc_learner=cfg.learner.transport == "inproc",
+                         neighbours=neighbours)
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """Serve as a router until stopped."""
     settings = cfg.zenoh.model_copy(update={"mode": "router"})
-    with Bus.open(settings, Keys(cfg.key_prefix, cfg.run_id), "router", 0) as bus:
+    policy = None if settings.insecure else run_policy(cfg)
+    with Bus.open(settings, Keys(cfg.key_prefix, cfg.run_id), "router", 0, policy=policy) as bus:
         bus.end_with_run(stop)
         bus.announce()
         log.info("router up, listening on %s", ", ".join(settings.listen) or "Zenoh's default endpoints")

@@ -20,66 +20,111 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import zenoh
 
 from swarmmap.shared.config import ConfigError, ZenohSettings
 from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, decode, encode
-from swarmmap.shared.secrets import identity
+from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, identity, own_folder
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
+DEFAULT_ROUTER_LISTEN = "tls/[::]:7447"  # Zenoh's default port, TLS only
+# How long a session waits on a link it cannot send on (a receiver that stopped reading) before
+# it closes that link (Zenoh's default: 5 s for both). The router gives up on a stuck member
+# first, long before a publisher would give up on its own link to the router, which would lose
+# what it sends meanwhile to every receiver (bench/slow_subscriber.py).
+ROUTER_CLOSES_STUCK_S, CLIENT_CLOSES_STUCK_S = 2.0, 60.0
 
 
-def zenoh_config(settings: ZenohSettings, who: str) -> zenoh.Config:
-    """A zenoh.Config for identity ``who`` (``learner-3``): the JSON5 file first, then each field
-    that is set, then the run's security (see :func:`secure`) unless ``insecure``."""
+def zenoh_config(settings: ZenohSettings, who: str, run: str = "", policy: dict | None = None) -> zenoh.Config:
+    """A zenoh.Config for identity ``who`` (``learner-3``) of run ``run``: the JSON5 file first,
+    then each field that is set, then the run's security (see :func:`secure`) unless ``insecure``;
+    a router enforces ``policy`` (its access control)."""
     conf = zenoh.Config.from_file(str(settings.config_file)) if settings.config_file else zenoh.Config()
-    mode, connect, listen = settings.mode, settings.connect, settings.listen
+    mode, connect, listen, scouting = settings.mode, settings.connect, settings.listen, settings.multicast_scouting
     if not settings.insecure:
-        mode, connect, listen = secure(conf, settings, who)
+        mode, connect, listen = secure(conf, settings, who, run, policy)
+        scouting = False  # a secure client finds its router by zenoh.connect; no UDP listener is opened
     if mode is not None:
         conf.insert_json5("mode", json.dumps(mode))
-    if connect:
+    # secure: the endpoints are exactly these, whatever the config file says
+    if connect or not settings.insecure:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-    if listen:
+    if listen or not settings.insecure:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
-    if settings.multicast_scouting is not None:
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if scouting is not None:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    stuck_s = ROUTER_CLOSES_STUCK_S if mode == "router" else CLIENT_CLOSES_STUCK_S
+    conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", json.dumps(int(stuck_s * 1e6)))
     return conf
 
 
-def secure(conf: zenoh.Config, settings: ZenohSettings, who: str) -> tuple[str, list[str], list[str]]:
-    """Mutual TLS with ``who``'s certificate from ``settings.secrets``; the router also enforces
-    the run's access policy. Every other session is a client of the router, so that every
-    message passes the policy. ``tcp/`` endpoints become ``tls/``. Returns mode, connect, listen."""
-    folder = settings.secrets
-    if folder is None:
+def tls_only(endpoints: list[str], field: str) -> list[str]:
+    """``endpoints`` as a secure session uses them: ``tls/`` as given, ``tcp/`` served as
+    ``tls/`` (said once in the log); any other protocol (``udp/``, ``ws/``, ...) raises
+    ConfigError naming ``field``."""
+    out = []
+    for endpoint in endpoints:
+        protocol, _, rest = endpoint.partition("/")
+        if protocol == "tls":
+            out.append(endpoint)
+        elif protocol == "tcp":
+            log.info("%s: %s is served as tls/%s (a secure run speaks TLS only)", field, endpoint, rest)
+            out.append(f"tls/{rest}")
+        else:
+            raise ConfigError(f"config error:\n  {field}: {endpoint} is not TLS; a secure run speaks TLS only: give tls/{rest} "
+                              f"(tcp/ is served as tls/), or opt out with --zenoh-insecure")
+    return out
+
+
+def credentials(settings: ZenohSettings, who: str, run: str) -> Path:
+    """``who``'s own credentials folder in ``settings.secrets``; with ``settings.signer``
+    (compose) they are made there first (:func:`~swarmmap.shared.secrets.enrol`)."""
+    if settings.secrets is None:
         raise ConfigError("config error:\n  zenoh.secrets: no credentials for this run. Create them with `swarmmap secrets "
                           "--run-dir RUN_DIR` (swarmmap up does it) or opt out with --zenoh-insecure")
-    needed = [folder / "ca.pem", folder / f"{who}.pem", folder / f"{who}.key"]
-    router = settings.mode == "router"
-    if router:
-        needed.append(folder / "acl.json5")
-    missing = [str(p) for p in needed if not p.is_file()]
+    folder = own_folder(settings.secrets, who, run)
+    if settings.signer is not None:
+        try:
+            return enrol(folder, who, run, settings.signer, settings.connect_timeout_s)
+        except (SecretsError, OSError) as exc:
+            raise ConfigError(f"config error:\n  zenoh.signer: {who} got no certificate: {exc}") from None
+    missing = [str(folder / name) for name in (CA_FILE, CERT_FILE, KEY_FILE) if not (folder / name).is_file()]
     if missing:
-        raise ConfigError(f"config error:\n  zenoh.secrets: {who} has no credentials in {folder} (missing {', '.join(missing)}); "
-                          "create them with `swarmmap secrets --run-dir RUN_DIR`")
-    tls = {"root_ca_certificate": str(folder / "ca.pem"), "enable_mtls": True, "verify_name_on_connect": False,
-           "connect_private_key": str(folder / f"{who}.key"), "connect_certificate": str(folder / f"{who}.pem")}
+        raise ConfigError(f"config error:\n  zenoh.secrets: {who} has no credentials of run {run} in {settings.secrets} "
+                          f"(missing {', '.join(missing)}); create them with `swarmmap secrets --run-dir RUN_DIR`")
+    return folder
+
+
+def secure(conf: zenoh.Config, settings: ZenohSettings, who: str, run: str, policy: dict | None) -> tuple[str, list[str], list[str]]:
+    """Mutual TLS with ``who``'s own key and certificate (:func:`credentials`), every client
+    checking the router's certificate name; the router also enforces ``policy``. Every other
+    session is a client of the router, so that every message passes the policy, and none
+    listens. Every endpoint is TLS (:func:`tls_only`); a router given none listens on
+    ``tls/[::]:7447``. Returns mode, connect, listen."""
+    folder = credentials(settings, who, run)
+    router = settings.mode == "router"
+    tls = {"root_ca_certificate": str(folder / CA_FILE), "enable_mtls": True, "verify_name_on_connect": True,
+           "connect_private_key": str(folder / KEY_FILE), "connect_certificate": str(folder / CERT_FILE)}
     if router:
-        tls |= {"listen_private_key": str(folder / f"{who}.key"), "listen_certificate": str(folder / f"{who}.pem")}
-        conf.insert_json5("access_control", (folder / "acl.json5").read_text())
+        if policy is None:
+            raise ConfigError(f"config error:\n  zenoh.mode: {who} cannot be a secure router: no access policy for run {run}")
+        tls |= {"listen_private_key": str(folder / KEY_FILE), "listen_certificate": str(folder / CERT_FILE)}
+        conf.insert_json5("access_control", json.dumps(policy))
     for field, value in tls.items():
         conf.insert_json5(f"transport/link/tls/{field}", json.dumps(value))
-    if not router:  # start in any order: wait for the router
+    connect = tls_only(settings.connect, "zenoh.connect")
+    if not router:
+        if not connect:
+            raise ConfigError(f"config error:\n  zenoh.connect: {who} needs the router's endpoint (tls/HOST:PORT) in a secure "
+                              "run (no multicast scouting)")
+        # start in any order: wait for the router
         conf.insert_json5("connect/timeout_ms", json.dumps({"router": -1, "peer": -1, "client": int(settings.connect_timeout_s * 1000)}))
-
-    def tls_endpoints(endpoints: list[str]) -> list[str]:
-        return ["tls/" + e[4:] if e.startswith("tcp/") else e for e in endpoints]
-
-    return ("router" if router else "client"), tls_endpoints(settings.connect), tls_endpoints(settings.listen) if router else []
+        return "client", connect, []
+    return "router", connect, tls_only(settings.listen, "zenoh.listen") or [DEFAULT_ROUTER_LISTEN]
 
 
 class RateCounter:
@@ -141,20 +186,25 @@ class Bus:
         self.run_done: RunDone | None = None
 
     @classmethod
-    def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0) -> Bus:
-        """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``.
+    def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0, policy: dict | None = None) -> Bus:
+        """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``; a
+        secure router enforces ``policy`` (its access control).
 
-        A config file Zenoh cannot read or an endpoint it cannot use raises ConfigError."""
+        A config file Zenoh cannot read, an endpoint it cannot use or a router it cannot reach
+        (or whose certificate is not this run's router's) raises ConfigError."""
         who = identity(service, ident)
         if settings.insecure:
             log.warning("INSECURE: %s opens its Zenoh session without TLS, authentication or access control; "
                         "anyone who reaches the router can join this run and poison it", who)
         try:
-            session = zenoh.open(zenoh_config(settings, who))
+            session = zenoh.open(zenoh_config(settings, who, keys.run, policy))
         except zenoh.ZError as exc:
             given = settings.model_dump(exclude_defaults=True, mode="json")
+            hint = "" if settings.insecure or settings.mode == "router" else (
+                f" (a secure client trusts only run {keys.run}'s router, by its certificate: the endpoint's host must be "
+                "one it names, the hosts of zenoh.connect when the credentials were made)")
             raise ConfigError(f"config error:\n  zenoh: cannot open a session with {given or 'the defaults'}: "
-                              f"{str(exc).split(' at /')[0]}") from None
+                              f"{str(exc).split(' at /')[0]}{hint}") from None
         return cls(session, keys, service, ident)
 
     def __enter__(self) -> Bus:
@@ -229,11 +279,19 @@ class Bus:
             log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
 
     def subscribe(self, key_expr: str, model: type[M], callback: Callable[[M], None], *,
-                  sender_from_key: bool = True, check: Callable[[M], None] | None = None) -> None:
+                  sender_from_key: bool = True, check: Callable[[M], None] | None = None, newest: int = 0) -> None:
         """Call ``callback(message)`` for every valid ``model`` published on ``key_expr``.
 
         With ``sender_from_key`` the id in the key (``robots/<id>/``, ``learners/<id>/``) must
         equal the message's sender. ``check`` may raise ProtocolError to refuse more.
+
+        A callback runs on Zenoh's receiving thread and must be quick: while it runs, nothing
+        more is read from the router, which then holds up the publishers (their congestion
+        control blocks so that no message is lost). A watcher that need not see every message
+        (the observer, ``up``'s progress) passes ``newest=N``: messages then wait in a ring of
+        the N newest (the oldest dropped) and a thread of its
+        own runs the callback, so that a slow callback never slows a publisher
+        (bench/slow_subscriber.py).
         """
 
         def handler(sample: zenoh.Sample) -> None:
@@ -253,7 +311,21 @@ class Bus:
             except Exception:  # a bug in a handler must not kill Zenoh's thread silently
                 log.exception("handler for %s failed", key)
 
-        self._handles.append(self.session.declare_subscriber(key_expr, handler))
+        if newest <= 0:
+            self._handles.append(self.session.declare_subscriber(key_expr, handler))
+            return
+        sub = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(newest))
+        self._handles.append(sub)
+        threading.Thread(target=self._drain, args=(sub, handler), name=f"sub {key_expr}", daemon=True).start()
+
+    @staticmethod
+    def _drain(sub: Any, handler: Callable[[zenoh.Sample], None]) -> None:
+        """Run ``handler`` on every sample of a ring subscriber until it is undeclared."""
+        try:
+            for sample in sub:
+                handler(sample)
+        except zenoh.ZError:  # the subscriber was undeclared (the bus closed)
+            pass
 
     def serve(self, key: str, reply: Callable[[], bytes]) -> None:
         """Answer every query on ``key`` with ``reply()``."""

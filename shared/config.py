@@ -80,8 +80,14 @@ class ZenohSettings(Section):
     config_file: Path | None = Field(
         None, description="a Zenoh JSON5 config file; the fields above override it")
     secrets: Path | None = Field(
-        None, description="folder of the run's credentials (swarmmap secrets): every link is mutual TLS and the router "
-                          "enforces the run's access policy; default RUN_DIR/secrets")
+        None, description="folder of the run's credentials (swarmmap secrets; a folder per service, each reads its own): "
+                          "every link is mutual TLS and the router enforces the run's access policy; default RUN_DIR/secrets")
+    signer: Path | None = Field(
+        None, description="folder where the run's signing step issues certificates (compose): a service makes its own key "
+                          "in zenoh.secrets and asks there for a certificate of the identity it serves")
+    keep_ca: Path | None = Field(
+        None, description="swarmmap secrets: keep the run's CA key in this folder (outside zenoh.secrets and the run "
+                          "directory) to issue more certificates later; unset: the key is discarded once they are issued")
     connect_timeout_s: float = Field(
         60.0, gt=0, description="a client session (every service but the router, with TLS) waits this long for the router at start")
     insecure: bool = Field(
@@ -343,6 +349,8 @@ class ObserverSettings(Section):
     connect: str | None = Field(None, description="stream to a running viewer at this gRPC URL, "
                                                   "e.g. rerun+http://127.0.0.1:9876/proxy")
     serve_web: bool = Field(False, description="serve the web viewer (for containers and remote machines)")
+    bind: str = Field("127.0.0.1", description="serve_web: the address the web viewer and its gRPC server listen on "
+                                               "(another than loopback opens the run's maps and scans to the network: warned)")
     web_port: int = Field(9090, ge=0, le=65535, description="serve_web: port of the web viewer page")
     grpc_port: int = Field(9876, ge=0, le=65535, description="serve_web: port of the gRPC server the page connects to")
     torch_threads: int = Field(1, ge=1, description="CPU threads for map evaluation")

@@ -1,10 +1,23 @@
-"""What every service process does at start: logging, a shutdown event set by SIGINT/SIGTERM."""
+"""What every service process does at start: logging, a shutdown event set by SIGINT/SIGTERM;
+and what a process that starts others gives them: death with their parent."""
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import signal
 import threading
+
+try:  # looked up here, not in the forked child, where only async-signal-safe work belongs
+    _prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+except (OSError, AttributeError):  # not Linux: Ctrl-C and run/done still stop the services
+    _prctl = None
+
+
+def die_with_parent() -> None:
+    """In a child, before exec: get SIGTERM when its parent dies (even by SIGKILL), so no child outlives it."""
+    if _prctl is not None:
+        _prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
 
 
 def setup_logging(level: str, name: str) -> logging.Logger:

@@ -2,7 +2,7 @@
 # The entrypoint of every swarmmap container: `swarmmap ARGS`, as the owner of the run directory.
 #
 #   swarmmap-entrypoint ARGS              swarmmap ARGS
-#   swarmmap-entrypoint --start-run ARGS  first the start of the run, then swarmmap ARGS (compose's recorder)
+#   swarmmap-entrypoint --start-run       the start of the run, then its signer (compose's start container)
 #
 # Started as root (compose's default user) with SWARMMAP_RUN_DIR set, it runs swarmmap as the
 # owner of that directory, so that a run's files belong to whoever owns the run, not to root
@@ -12,11 +12,13 @@
 # folder and the run directory, when the engine has just made them (root's and empty), to the
 # owner of /etc/swarmmap/compose.yaml (compose mounts its file there: the user who cloned the
 # repository), then, as the run directory's owner, runs `python -m swarmmap.services.claim start`:
-# it refuses a run directory holding another run, writes config.yaml and the credentials,
-# forgets the robot claims of an earlier `up`, and writes its verdict to
-# $SWARMMAP_ROBOT_CLAIMS/start. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set)
-# reads that verdict first and stops, naming it, unless it is `ok` (compose v1 starts the others
-# even when the recorder's container has exited).
+# it refuses a run directory holding another run, writes config.yaml, makes the run's CA (its key
+# in that process's memory only), forgets the robot claims of an earlier `up`, writes its verdict
+# to $SWARMMAP_ROBOT_CLAIMS/start, then signs each service's certificate until the run is over.
+# Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set) reads that verdict first and
+# stops, naming it, unless it is `ok` (compose v1 starts the others even when the start
+# container has exited); it then makes its own key in its own file system and asks the signer
+# for the certificate of the identity it serves (zenoh.signer).
 set -eu
 run_dir=${SWARMMAP_RUN_DIR:-}
 shared=${SWARMMAP_ROBOT_CLAIMS:-}
@@ -45,15 +47,19 @@ if [ "$(id -u)" = 0 ] && [ -n "$run_dir" ] && [ -d "$run_dir" ] && [ "$(stat -c 
     exec setpriv --reuid "$(stat -c %u "$run_dir")" --regid "$(stat -c %g "$run_dir")" --clear-groups "$0" "$@"
 fi
 if [ "${1:-}" = --start-run ]; then
-    shift
-    python -m swarmmap.services.claim start
+    exec python -m swarmmap.services.claim start
 elif [ -n "$shared" ]; then
     case "${1:-}" in
     router | recorder | world | lidar | learner | observer)  # a service of the run; other commands are not held back
         verdict=$(cat "$shared/start" 2>/dev/null || true)
         if [ "$verdict" != ok ]; then
-            echo "this run did not start (${shared}/start): ${verdict:-the recorder's container has not started it}" >&2
+            echo "this run did not start (${shared}/start): ${verdict:-the start container has not started it}" >&2
             exit 2
+        fi
+        # A shared lock held for as long as the service runs: the start container ends once none is held.
+        if [ -w "$shared" ]; then
+            exec 9>>"$shared/running"
+            flock -s 9
         fi
         ;;
     esac

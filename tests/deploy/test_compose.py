@@ -1,7 +1,8 @@
 """``docker compose up`` on a real Docker engine, in a fresh copy of the repository owned by a user
-who is not root, with nothing set beforehand: the run is secure (every link mutual TLS,
-credentials made by the first step of the run), ends by itself and is whole and owned by that
-user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
+who is not root, with nothing set beforehand: the run is secure (every link mutual TLS, each
+container holding only its own key, signed by the start of the run, which keeps the CA key in
+memory; each service's container mounts its own run only), ends by itself and is whole and
+owned by that user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
 runs five robots (replicas of one service that claim their ids, which a restarted container
 keeps), returns the recorder's status and keeps the first run whole beside it; a run directory
 holding an unfinished run with other settings is refused and left as it was, and no container
@@ -11,10 +12,12 @@ the site's CA."""
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import shutil
 import subprocess
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -56,9 +59,9 @@ def compose(clone: Path, *args: str, env: dict[str, str] | None = None, timeout:
 
 
 def output(proc: subprocess.CompletedProcess, clone: Path, env: dict[str, str] | None = None) -> str:
-    """What compose said, and the recorder's last words (a refused start is only in its log)."""
-    logs = compose(clone, "logs", "--no-color", "--tail", "20", "recorder", env=env, timeout=120).stdout
-    return proc.stdout[-6000:] + proc.stderr[-3000:] + "\nrecorder:\n" + logs
+    """What compose said, and the start's and recorder's last words (a refused start is only in its log)."""
+    logs = compose(clone, "logs", "--no-color", "--tail", "20", "start", "recorder", env=env, timeout=120).stdout
+    return proc.stdout[-6000:] + proc.stderr[-3000:] + "\nstart, recorder:\n" + logs
 
 
 def assert_whole_run(run_dir: Path, robots: int, rounds: int) -> None:
@@ -72,9 +75,9 @@ def assert_whole_run(run_dir: Path, robots: int, rounds: int) -> None:
     for name in ("config.yaml", "groundtruth.png", "groundtruth.npz", "observer.json", "recording.rrd"):
         assert (run_dir / name).stat().st_size > 0, name
     for robot in range(robots):
-        for name in (f"maps/robot-{robot}-mean.png", f"models/robot-{robot}.pt", f"data/robot-{robot}.npz",
-                     f"secrets/learner-{robot}.key", f"secrets/lidar-{robot}.key"):
+        for name in (f"maps/robot-{robot}-mean.png", f"models/robot-{robot}.pt", f"data/robot-{robot}.npz"):
             assert (run_dir / name).exists(), name
+    assert not [p for p in run_dir.rglob("*") if p.is_file() and b"PRIVATE KEY" in p.read_bytes()], "a private key in the run"
     entities = recording_entities(run_dir / "recording.rrd")
     for robot in range(robots):
         assert {f"/world/robots/{robot}/pose", f"/world/robots/{robot}/scan", f"/maps/mean/robot-{robot}"} <= entities.keys()
@@ -93,6 +96,48 @@ def running() -> list[str]:
     return ps.stdout.split()
 
 
+def containers(clone: Path) -> dict[str, str]:
+    """This project's containers (running or not): id -> compose service."""
+    ids = compose(clone, "ps", "-a", "-q", timeout=120).stdout.split()
+    return {c: inspect(c, '{{index .Config.Labels "com.docker.compose.service"}}') for c in ids}
+
+
+def inspect(container: str, template: str) -> str:
+    return subprocess.run(["docker", "inspect", "-f", template, container], capture_output=True, text=True, timeout=60,
+                          check=True).stdout.strip()
+
+
+def private_keys(container: str, folder: str) -> list[str]:
+    """The files holding a private key under ``folder`` in ``container``'s own file system (it may have exited)."""
+    copy = subprocess.run(["docker", "cp", f"{container}:{folder}", "-"], capture_output=True, timeout=120)
+    if copy.returncode != 0:
+        return []
+    with tarfile.open(fileobj=io.BytesIO(copy.stdout)) as tar:
+        return [m.name for m in tar.getmembers() if m.isfile() and b"PRIVATE KEY" in tar.extractfile(m).read()]
+
+
+def assert_each_container_holds_its_own_key_only(clone: Path, runs: Path) -> None:
+    """Every service's container holds exactly one key, of an identity no other holds; none but
+    `start` mounts more than its own run and the shared volume; the shared volume holds no key."""
+    held: dict[str, str] = {}
+    for container, service in containers(clone).items():
+        mounts = json.loads(inspect(container, "{{json .Mounts}}"))
+        where = {m["Destination"]: m.get("Source", "") for m in mounts}
+        keys = private_keys(container, "/tmp/swarmmap-credentials")
+        if service == "start":
+            assert keys == [] and set(where) == {"/runs", "/compose", "/etc/swarmmap/compose.yaml"}, (where, keys)
+            continue
+        assert set(where) == {"/runs/compose", "/compose"} and Path(where["/runs/compose"]) == runs / "compose", where
+        assert len(keys) == 1 and keys[0].endswith("@compose/key.pem"), f"{service} {container} holds {keys}"
+        identity = keys[0].split("/")[-2]
+        assert identity.split("-")[0] == service and identity not in held, (identity, held)
+        held[identity] = container
+    image = inspect(next(iter(containers(clone))), "{{.Image}}")
+    shared = subprocess.run(["docker", "run", "--rm", "--entrypoint", "grep", "-v", f"{PROJECT}_compose:/c", image,
+                             "-rl", "PRIVATE KEY", "/c"], capture_output=True, text=True, timeout=120)
+    assert shared.stdout.strip() == "", f"private keys in the shared volume: {shared.stdout}"
+
+
 def owners(folder: Path) -> set[tuple[int, int]]:
     return {(p.stat().st_uid, p.stat().st_gid) for p in [folder, *folder.rglob("*")]}
 
@@ -105,6 +150,7 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     runs = clone / "runs"
     assert_whole_run(runs / "compose", robots=3, rounds=60)
     assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
+    assert_each_container_holds_its_own_key_only(clone, runs)
 
     five = {"SWARMMAP_ROBOTS": "5"}
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
@@ -137,7 +183,7 @@ def test_a_run_directory_holding_an_unfinished_run_with_other_settings_is_refuse
     before = {p: p.read_bytes() for p in other.rglob("*") if p.is_file()}
     up = compose(clone, "up", "--exit-code-from", "recorder", env={"SWARMMAP_RUN_ID": "other"})
     assert up.returncode != 0, output(up, clone, {"SWARMMAP_RUN_ID": "other"})
-    logs = compose(clone, "logs", "recorder", env={"SWARMMAP_RUN_ID": "other"}).stdout
+    logs = compose(clone, "logs", "start", env={"SWARMMAP_RUN_ID": "other"}).stdout
     assert "robots 2 there, 3 here" in logs and "SWARMMAP_RUN_ID" in logs, logs[-3000:]
     assert wait_until(lambda: not running(), timeout=120, interval=1.0), f"still running: {running()}"
     assert {p: p.read_bytes() for p in other.rglob("*") if p.is_file()} == before

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from swarmmap.shared.secrets import identities
 from tests.conftest import REPO, recording_entities, wait_until
 from tests.deploy.conftest import VENV_BIN
 
@@ -60,6 +61,9 @@ def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path)
         assert (run_dir / name).stat().st_size > 0, name
     entities = recording_entities(run_dir / "recording.rrd")
     assert all(f"/world/robots/{r}/pose" in entities and f"/maps/mean/robot-{r}" in entities for r in range(3))
+    # Each service's key in a folder of its own (the router's certificate names the job's node); no CA key.
+    keys = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*") if p.is_file() and b"PRIVATE KEY" in p.read_bytes())
+    assert keys == sorted(f"secrets/{name}@slurm-{job}/key.pem" for name in identities(3)), keys
 
 
 def learner_pid(run_dir: Path, robot: int) -> int | None:

@@ -1,24 +1,28 @@
 """A `swarmmap up` run is closed to strangers and robust to a hostile member: a client without
-the run's credentials (plain TCP, or a certificate of another CA) cannot connect; with learner
-1's credentials it cannot publish as learner 2; the all-zero States it sends as learner 1 are
-refused by the learners, and the run ends exactly where a clean run ends."""
+the run's credentials (plain TCP, a certificate of another CA, another run's credentials)
+cannot connect; with learner 1's credentials it cannot publish as learner 2; the all-zero
+States it sends as learner 1 are refused by the learners, and the run ends exactly where a
+clean run ends. Each service's key lies in a folder of its own and the CA key is nowhere."""
 
 from __future__ import annotations
 
 import json
+import stat
 import subprocess
 import time
 
 import numpy as np
 import pytest
 import yaml
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.models import param_count
 from swarmmap.shared.networks import build_network
 from swarmmap.shared.protocol import Keys, State, Tensor
-from swarmmap.shared.secrets import write_secrets
+from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, identities, own_folder, router_names, write_credentials
 from tests.conftest import SWARMMAP, clean_env, wait_until
 from tests.harness import final_losses
 
@@ -44,9 +48,13 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
         # A stranger: plain TCP, then TLS with a certificate of another CA.
         with pytest.raises(ConfigError, match="cannot open a session"):
             Bus.open(router.model_copy(update={"insecure": True, "mode": "client"}), keys, "learner", 1)
-        write_secrets(tmp_path / "forged", 3, {"enabled": True})
+        write_credentials(tmp_path / "forged", cfg.run_id, identities(3), router_names(cfg.zenoh.connect))
         with pytest.raises(ConfigError, match="cannot open a session"):
             Bus.open(router.model_copy(update={"secrets": tmp_path / "forged"}), keys, "learner", 1)
+        clean_run = yaml.safe_load((tmp_path / "clean" / "config.yaml").read_text())["run_id"]
+        with pytest.raises(ConfigError, match="cannot open a session"):  # a member of another run, its own credentials
+            Bus.open(router.model_copy(update={"secrets": tmp_path / "clean" / "secrets"}), Keys(cfg.key_prefix, clean_run),
+                     "learner", 1)
         # A member gone rogue: learner 1's own credentials.
         size = param_count(build_network(cfg.network(), (0, 0, 1, 1), cfg.seed))
         zeros = Tensor.of(np.zeros(size, np.float32), "<f4")
@@ -71,3 +79,23 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
     assert summary["learners"]["0"]["refused"] > 0 and summary["learners"]["2"]["refused"] > 0
     logs = (run_dir / "logs" / "learner-0.log").read_text()
     assert "refused the state of node 1" in logs and "refused the state of node 2" not in logs
+    assert_each_key_apart(run_dir, cfg.run_id)
+
+
+def public_der(key) -> bytes:
+    return key.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+
+
+def assert_each_key_apart(run_dir, run_id) -> None:
+    """Every private key in the run directory is one service's, in its own folder (0700) beside
+    its certificate; none is the CA's."""
+    secrets = run_dir / "secrets"
+    ca = x509.load_pem_x509_certificate((own_folder(secrets, "router-0", run_id) / CA_FILE).read_bytes())
+    keys = {p: serialization.load_pem_private_key(p.read_bytes(), None) for p in run_dir.rglob("*")
+            if p.is_file() and b"PRIVATE KEY" in p.read_bytes()}
+    assert sorted(p.parent for p in keys) == sorted(own_folder(secrets, n, run_id) for n in identities(3)), sorted(keys)
+    for path, key in keys.items():
+        assert path.name == KEY_FILE and stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+        assert sorted(p.name for p in path.parent.iterdir()) == [CA_FILE, CERT_FILE, KEY_FILE]
+        cert = x509.load_pem_x509_certificate((path.parent / CERT_FILE).read_bytes())
+        assert public_der(cert.public_key()) == public_der(key.public_key()) != public_der(ca.public_key()), path

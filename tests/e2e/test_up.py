@@ -155,7 +155,8 @@ def test_status_lists_live_services_and_ctrl_c_stops_everything(tmp_path):
             res = subprocess.run([*SWARMMAP, "status", str(run_dir), "--window", "1"],
                                  capture_output=True, text=True, timeout=60, env=clean_env())
             out["text"] = res.stdout
-            return all(f"learner    {i}" in res.stdout for i in range(3)) and "state" in res.stdout and \
+            # the exchange's rates: a status tool receives no State (the access policy), each round's RoundComplete
+            return all(f"learner    {i}" in res.stdout for i in range(3)) and "round-complete" in res.stdout and \
                 all(re.search(rf"learner +{i} +round +\d+ +val_bce \d", res.stdout) for i in range(3))
 
         assert wait_until(status_shows_learners, 120, interval=0.5), out["text"]

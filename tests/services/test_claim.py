@@ -1,18 +1,25 @@
 """Robot ids claimed by look-alike containers (services/claim.py) and compose's start of a run:
 replicas that claim at once get distinct ids, a holder gets its own id back, one too many is
 refused with a message naming the setting; a finished run with other settings is kept aside
-whole, an unfinished one is refused without a byte of it changed."""
+whole, an unfinished one is refused without a byte of it changed; the run's signer issues each
+identity to one key, writes no private key and its certificates carry a secure run."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import multiprocessing
 import socket
+import threading
 
 import pytest
 
-from swarmmap.services.claim import ClaimError, claim_robot, forget_claims, start
-from swarmmap.shared.config import task_robot
+from swarmmap.services.claim import ClaimError, claim_robot, forget_claims, nobody_running, start
+from swarmmap.shared.bus import Bus
+from swarmmap.shared.config import ZenohSettings, task_robot
+from swarmmap.shared.protocol import Keys
+from swarmmap.shared.secrets import SecretsError, access_policy, enrol
+from tests.conftest import free_port, wait_until
 
 
 def _claim_at_once(folder, barrier, holder, robots, out):
@@ -76,7 +83,7 @@ def test_start_writes_config_and_credentials_forgets_claims_and_says_ok(tmp_path
     claim_robot(shared, "learner", 3, holder="a container of an earlier up")
     assert start(compose_env(run_dir, 3)) == 0
     assert "robots: 3" in (run_dir / "config.yaml").read_text()
-    assert {"ca.pem", "acl.json5", "learner-2.key", "lidar-2.pem", "router-0.key"} <= {p.name for p in (run_dir / "secrets").iterdir()}
+    assert {"learner-2@compose", "lidar-2@compose", "router-0@compose"} <= {p.name for p in (run_dir / "secrets").iterdir()}
     assert not list(shared.glob("*.json")) and (shared / "start").read_text() == "ok\n"
     assert start(compose_env(run_dir, 3)) == 0  # the same run again: it resumes
 
@@ -108,3 +115,45 @@ def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):
     assert start(compose_env(tmp_path / "compose", 3) | {"SWARMMAP_ROBOTS": "100"}) == 2
     assert "robots" in capsys.readouterr().err and "robots" in (tmp_path / "shared" / "start").read_text()
     assert not (tmp_path / "compose").exists()
+
+
+@pytest.mark.timeout(120)
+def test_the_signer_issues_each_identity_to_one_key_and_no_private_key_is_shared(tmp_path):
+    run_dir, shared = tmp_path / "compose", tmp_path / "shared"
+    signer = shared / "signer"
+    env = compose_env(run_dir, 2) | {"SWARMMAP_ZENOH__SIGNER": str(signer), "SWARMMAP_ZENOH__SECRETS": str(tmp_path / "own-start")}
+    stop = threading.Event()
+    thread = threading.Thread(target=start, args=(env, True, stop), daemon=True)
+    thread.start()
+    try:
+        assert wait_until(lambda: (shared / "start").exists() and (shared / "start").read_text() == "ok\n", 60, 0.1)
+        containers = {name: tmp_path / "containers" / name for name in ("router", "learner-a", "learner-b")}
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        keys = Keys("swarmmap", "compose")
+        router = ZenohSettings(mode="router", listen=[endpoint], multicast_scouting=False, secrets=containers["router"],
+                               signer=signer, connect_timeout_s=30)
+        member = ZenohSettings(connect=[endpoint], multicast_scouting=False, secrets=containers["learner-a"], signer=signer,
+                               connect_timeout_s=30)
+        with Bus.open(router, keys, "router", 0, policy=access_policy(keys, 2)), Bus.open(member, keys, "learner", 1) as learner:
+            learner.announce()
+            assert wait_until(lambda: ("learner", "1") in learner.alive("learner"), 10)  # a secure session, end to end
+        with pytest.raises(SecretsError, match="already issued to another key"):  # a second container claiming learner 1
+            enrol(containers["learner-b"] / "learner-1@compose", "learner-1", "compose", signer, 30)
+        again = enrol(containers["learner-a"] / "learner-1@compose", "learner-1", "compose", signer, 30)  # its restart
+        assert (again / "cert.pem").is_file()
+    finally:
+        stop.set()
+        thread.join(30)
+    keys_on_disk = [p for p in tmp_path.rglob("*") if p.is_file() and b"PRIVATE KEY" in p.read_bytes()]
+    assert sorted(p.relative_to(tmp_path / "containers").parts[0] for p in keys_on_disk) == ["learner-a", "learner-b", "router"], \
+        f"private keys outside the containers' own folders: {keys_on_disk}"
+    assert not (run_dir / "secrets").exists()
+
+
+def test_the_start_sees_when_no_service_runs_any_more(tmp_path):
+    running = tmp_path / "running"
+    assert not nobody_running(running)  # no service has ever started: not "over"
+    with open(running, "a") as service:  # what each service's entrypoint holds while it runs
+        fcntl.flock(service, fcntl.LOCK_SH)
+        assert not nobody_running(running)
+    assert nobody_running(running)

@@ -1,19 +1,23 @@
 """The Rerun observer: real learner States over Zenoh become mean and std map entities in an
-.rrd that Rerun's own reader finds; the newest State of each learner is the one mapped."""
+.rrd that Rerun's own reader finds; the newest State of each learner is the one mapped; its
+web viewer and gRPC server listen on loopback unless told otherwise."""
 
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 from rerun.chunk import RrdReader
 
-from swarmmap.services.observer import Observer
+from swarmmap.services.observer import Observer, blueprint, open_sinks
 from swarmmap.shared.config import resolve
 from swarmmap.shared.protocol import State, Tensor
-from tests.conftest import SWARMMAP, clean_env, recording_entities
+from tests.conftest import SWARMMAP, clean_env, free_port, recording_entities, wait_until
 
 
 def state(robot: int, rnd: int) -> State:
@@ -72,3 +76,37 @@ def test_observer_without_a_sink_is_refused(tmp_path):
                           capture_output=True, text=True, timeout=60, env=clean_env())
     assert proc.returncode == 2
     assert "observer: no sink" in proc.stderr
+
+
+def listening_addresses(port: int) -> set[str]:
+    """The local addresses that listen on TCP ``port`` on this machine (from /proc/net)."""
+    found = set()
+    for table, family in (("/proc/net/tcp", socket.AF_INET), ("/proc/net/tcp6", socket.AF_INET6)):
+        for line in Path(table).read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            address, hex_port = local.split(":")
+            if state == "0A" and int(hex_port, 16) == port:  # 0A: LISTEN
+                raw = bytes.fromhex(address)
+                raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))  # each 32-bit word is little-endian
+                found.add(socket.inet_ntop(family, raw))
+    return found
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("bind, expected", [(None, {"127.0.0.1"}), ("0.0.0.0", {"0.0.0.0"})])
+def test_the_web_viewer_and_its_grpc_server_listen_on_loopback_unless_told_otherwise(tmp_path, caplog, bind, expected):
+    web, grpc = free_port(), free_port()
+    settings = {"serve_web": True, "web_port": web, "grpc_port": grpc} | ({"bind": bind} if bind else {})
+    cfg = resolve({"preset": "smoke", "observer": settings}, environ={})
+    rec = rr.RecordingStream("swarmmap-test", recording_id="ports")
+    names, servers = open_sinks(cfg, rec, blueprint(2, False))
+    try:
+        assert wait_until(lambda: listening_addresses(web) and listening_addresses(grpc), 60, 0.2), names
+        assert listening_addresses(web) == expected and listening_addresses(grpc) == expected
+    finally:
+        rec.disconnect()
+        for proc in servers:
+            proc.terminate()
+            proc.wait(30)
+    warned = [r.getMessage() for r in caplog.records if "listen beyond loopback" in r.getMessage()]
+    assert bool(warned) == (bind is not None), warned
