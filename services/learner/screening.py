@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.shared.bnn import is_rho
+from swarmmap.shared.layout import StateLayout
 
 GROUP_FACTOR = 4  # a Bayesian network's means (or rho) may lie this many times max_distance of their own norm away
-from swarmmap.shared.layout import StateLayout
 
 
 def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float) -> str | None:
