@@ -12,7 +12,8 @@
 # folder and the run directory, when the engine has just made them (root's and empty), to the
 # owner of /etc/swarmmap/compose.yaml (compose mounts its file there: the user who cloned the
 # repository), then, as the run directory's owner, runs `python -m swarmmap.services.claim start`:
-# it refuses a run directory holding another run, writes config.yaml and the credentials,
+# it refuses a run directory holding a finished run, or one that did not finish unless
+# SWARMMAP_UP__RESUME=true resumes it (the same settings only), writes config.yaml and the credentials,
 # forgets the robot claims of an earlier `up`, and writes its verdict to
 # $SWARMMAP_ROBOT_CLAIMS/start. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set)
 # reads that verdict first and stops, naming it, unless it is `ok` (compose v1 starts the others
