@@ -229,11 +229,14 @@ class Bus:
             log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
 
     def subscribe(self, key_expr: str, model: type[M], callback: Callable[[M], None], *,
-                  sender_from_key: bool = True, check: Callable[[M], None] | None = None) -> None:
+                  sender_from_key: bool = True, check: Callable[[M], None] | None = None, direct: bool = False) -> None:
         """Call ``callback(message)`` for every valid ``model`` published on ``key_expr``.
 
         With ``sender_from_key`` the id in the key (``robots/<id>/``, ``learners/<id>/``) must
-        equal the message's sender. ``check`` may raise ProtocolError to refuse more.
+        equal the message's sender. ``check`` may raise ProtocolError to refuse more. ``direct``
+        runs the callback in Zenoh's receiving thread rather than a thread of its own fed by an
+        unbounded queue: a callback that blocks then holds back the publishers (their back
+        pressure) instead of letting messages pile up.
         """
 
         def handler(sample: zenoh.Sample) -> None:
@@ -253,7 +256,7 @@ class Bus:
             except Exception:  # a bug in a handler must not kill Zenoh's thread silently
                 log.exception("handler for %s failed", key)
 
-        self._handles.append(self.session.declare_subscriber(key_expr, handler))
+        self._handles.append(self.session.declare_subscriber(key_expr, zenoh.handlers.Callback(handler, indirect=not direct)))
 
     def serve(self, key: str, reply: Callable[[], bytes]) -> None:
         """Answer every query on ``key`` with ``reply()``."""
