@@ -46,6 +46,7 @@ class Inbox:
         self.queue: queue.Queue[Scan] = queue.Queue(size)
 
     def put(self, scan: Scan) -> None:
+        """Add ``scan``, waiting while the inbox is full (the Zenoh callback: back pressure)."""
         while not self.stop.is_set():
             try:
                 self.queue.put(scan, timeout=0.2)

@@ -139,10 +139,11 @@ class MetricsRecorder:
             return True
 
     def close(self) -> None:
+        """Close the file (a flush that fails is the failure already reported)."""
         with self._lock:
             try:
                 self._file.close()
-            except OSError:  # the rows it could not flush are the failure the run already reported
+            except OSError:
                 pass
 
 
@@ -237,6 +238,7 @@ class StallWatch:
         self._lock = threading.Lock()
 
     def on_metrics(self, m: Metrics, now: float | None = None) -> None:
+        """A learner reported: progress, and its newest round."""
         with self._lock:
             self.last = time.monotonic() if now is None else now
             if m.sender < self.robots:
@@ -245,6 +247,7 @@ class StallWatch:
                     self.finished.add(m.sender)
 
     def on_scan(self, now: float | None = None) -> None:
+        """A robot scanned: progress of the traversal."""
         with self._lock:
             self.last = time.monotonic() if now is None else now
             self.scans += 1
@@ -425,6 +428,7 @@ class Recorder:
         self._ready = False  # every learner came alive
 
     def on_metrics(self, m: Metrics) -> None:
+        """A learner's Metrics: into metrics.csv (a failed write fails the run), the rules and the log."""
         try:
             self.metrics.add(m)
         except OSError as exc:
@@ -436,10 +440,12 @@ class Recorder:
                  m.consensus_error, "  (final)" if m.final else "")
 
     def on_scan(self, scan: Scan) -> None:
+        """A robot's scan: progress, and the traversal's line."""
         self.stall.on_scan()
         self.phases.traversal.add(scan)
 
     def fetch_ground_truth(self, bus: Bus, stop: threading.Event) -> None:
+        """Ask the world for its map and write the ground truth (a failed write fails the run)."""
         world = bus.query(bus.keys.world_map(), WorldMap, timeout=self.cfg.world_wait_s(), stop=stop)
         if world is not None:
             try:
@@ -468,6 +474,7 @@ class Recorder:
         return None
 
     def summary(self, ok: bool, reason: str) -> dict:
+        """summary.json's content for this outcome (with who held a stalled run up)."""
         doc = summary(self.cfg, self.metrics, ok, reason, time.monotonic() - self.t0, self.started, self.earlier)
         if not ok and reason.startswith("the run made no progress"):
             doc["held_up_by"] = self.stall.held_up_by()
