@@ -111,7 +111,8 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     again = compose(clone, "up", "--exit-code-from", "recorder", env={"SWARMMAP_ROBOTS": "5"})
     assert again.returncode != 0, output(again, clone)
     logs = compose(clone, "logs", "recorder").stdout
-    assert "holds a finished run, which is never overwritten; choose another SWARMMAP_RUN_ID" in logs, logs[-3000:]
+    assert "/runs/compose holds a finished run (it ended " in logs, logs[-3000:]
+    assert "never overwritten; choose another SWARMMAP_RUN_ID" in logs, logs[-3000:]
     assert {p: p.read_bytes() for p in (runs / "compose").rglob("*") if p.is_file()} == finished
     five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five"}
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
