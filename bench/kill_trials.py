@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import random
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -41,6 +42,7 @@ def main() -> int:
         rng = random.Random(trial)
         robot, at, after = rng.randrange(a.robots), rng.randrange(10, a.rounds - 40), rng.uniform(0, 1.5)
         run_dir = a.out / f"trial-{trial}"
+        shutil.rmtree(run_dir, ignore_errors=True)  # the bench's own trial of an earlier call: up refuses a finished run
         t0 = time.monotonic()
         proc = up(run_dir, *args)
         try:

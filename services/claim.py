@@ -12,10 +12,9 @@ a claim: give them ``--robot`` instead.
 
 ``python -m swarmmap.services.claim start`` is the first step of a compose run (the ``start``
 container runs it, see deploy/docker/entrypoint.sh; it runs no service and joins no Zenoh
-session): from the same environment as every service, it checks the run directory (the same
-settings: the run resumes; a finished run with other settings: kept as ``RUN_DIR-<its end>``
-beside it, and this run starts afresh; an unfinished one with other settings: refused, as
-``swarmmap up`` refuses it), writes the run's ``config.yaml``, makes the run's CA (its key in
+session): from the same environment as every service, it checks the run directory as ``swarmmap up`` does (a
+finished run: refused; one that did not finish: resumed with ``SWARMMAP_UP__RESUME=true`` when its
+settings are the same, refused otherwise), writes the run's ``config.yaml``, makes the run's CA (its key in
 this process's memory only: :class:`~swarmmap.shared.secrets.Signer`), forgets the claims of
 the containers of an earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or
 why not), which every other container of the run reads before it starts its service. Then it
@@ -150,7 +149,7 @@ def nobody_running(running: Path | None) -> bool:
 def begin(environ: dict[str, str]) -> RunConfig:
     """The checks and writes of the start of a run; returns its config, or raises ConfigError
     naming what is wrong."""
-    from swarmmap.services.launcher import other_run_in, prepare, write_config
+    from swarmmap.services.launcher import WayOut, prepare, run_dir_problem, write_config
     from swarmmap.shared.floorplan import PlanError
     from swarmmap.shared.recording import RecordingError
 
@@ -162,27 +161,11 @@ def begin(environ: dict[str, str]) -> RunConfig:
         cfg = prepare(cfg)
     except (RecordingError, PlanError) as exc:
         raise ConfigError(str(exc)) from None
-    if (why := other_run_in(cfg)) is not None:
-        if not (cfg.run_dir / "summary.json").exists():  # still running, or stopped without a word: never moved
-            raise ConfigError(f"config error:\n  run_dir: {why} (with compose: SWARMMAP_RUN_ID=<another name>)")
-        kept = keep_aside(cfg.run_dir)
-        log.warning("%s held a finished run with other settings: kept beside it as %s; this run starts afresh",
-                    cfg.run_dir, kept.name)
+    ways = WayOut(other="choose another SWARMMAP_RUN_ID", resume="SWARMMAP_UP__RESUME=true")
+    if (why := run_dir_problem(cfg, ways)) is not None:
+        raise ConfigError(f"config error:\n  run_dir: {why}")
     log.info("run %s: %d robots, config %s", cfg.run_id, cfg.robots, write_config(cfg))
     return cfg
-
-
-def keep_aside(run_dir: Path) -> Path:
-    """Move a finished run out of ``run_dir`` to a sibling named after its end; returns it."""
-    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime((run_dir / "summary.json").stat().st_mtime))
-    kept = run_dir.with_name(f"{run_dir.name}-{stamp}")
-    n = 1
-    while kept.exists():
-        n += 1
-        kept = run_dir.with_name(f"{run_dir.name}-{stamp}-{n}")
-    run_dir.rename(kept)
-    run_dir.mkdir()
-    return kept
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,6 +24,10 @@ Run directory: ``config.yaml`` (the resolved config; every service reads it), ``
 PNGs, a ROS map), ``data/robot-<id>.npz`` (training
 points), ``logs/<service>-<id>.log``, ``recording.rrd`` and ``observer.json`` (the observer's
 Rerun recording and its time per map).
+A run directory is never overwritten: one that holds a finished run is refused, one that holds
+a run that did not finish is resumed with ``--resume`` (``up.resume``: its learners go on from
+their checkpoints, its metrics, summary and logs go on where they stopped) and refused without
+it; ``prepare``, compose and the SLURM scripts keep the same rules (:func:`run_dir_problem`).
 """
 
 from __future__ import annotations
@@ -48,12 +52,14 @@ from swarmmap.services.preflight import PlanFacts, check_run
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig, fail, validate_config
-from swarmmap.shared.fingerprint import settings_fingerprint
+from swarmmap.shared.disk import disk_words
+from swarmmap.shared.fingerprint import fingerprint_diff, settings_fingerprint
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.progress import TeamProgress, TraversalProgress
-from swarmmap.shared.protocol import Keys, Metrics, Scan
+from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan
 from swarmmap.shared.recording import RecordingError, read_recording
+from swarmmap.shared.rundir import config_doc, local_time, read_summary, run_state
 from swarmmap.shared.runtime import die_with_parent
 from swarmmap.shared.secrets import SecretsError, identities, router_names, write_credentials
 from swarmmap.shared.slots import slots_dir
@@ -78,7 +84,11 @@ def prepare(cfg: RunConfig) -> RunConfig:
     """The run's resolved config, as every launcher writes it to ``RUN_DIR/config.yaml``: a run id
     and run directory, the recordings to replay or record, and an observer that the world waits
     for and that saves ``RUN_DIR/recording.rrd``."""
-    run_id = cfg.run_id if cfg.run_id != "default" else time.strftime("run-%Y%m%d-%H%M%S")
+    if cfg.up.resume and cfg.run_dir is None and cfg.run_id == "default":
+        raise ConfigError("config error:\n  up.resume: name the run to resume: --run-dir RUN_DIR (or --run-id ID for runs/ID)")
+    run_id = cfg.run_id
+    if run_id == "default":  # a resumed run keeps its id
+        run_id = (cfg.up.resume and config_doc(cfg.run_dir).get("run_id")) or time.strftime("run-%Y%m%d-%H%M%S")
     run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
     secrets = None if cfg.zenoh.insecure else (cfg.zenoh.secrets or run_dir / "secrets").resolve()
     cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir,
@@ -184,12 +194,17 @@ class Launcher:
         self.traversal = TraversalProgress(self.cfg.robots)
         self.failure: str | None = None  # why up ended the run, for summary.json (a refusal, a service that failed)
         self.failure_code: int | None = None  # that service's exit status
+        self.done: RunDone | None = None  # the recorder's verdict, as it said it (also when it could not write it)
         self._phase = "starting"
 
     def spawn(self, service: str, ident: int, *extra: str) -> Child:
-        """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/."""
+        """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/ (appended:
+        a resumed run's log goes on after the earlier ones, under a line that says so)."""
         child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", extra)
-        self.start(child, "w")
+        if child.log_path.exists() and child.log_path.stat().st_size:
+            with child.log_path.open("a") as out:
+                out.write(f"\n--- swarmmap up: run {self.cfg.run_id} resumed at {local_time(time.time())} ---\n")
+        self.start(child, "a")
         self.children.append(child)
         return child
 
@@ -281,6 +296,7 @@ class Launcher:
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
                 bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics, newest=1024)  # progress: never slows a publisher
                 bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add, newest=1024)
+                bus.subscribe(self.keys.run_done(), RunDone, self.on_done, sender_from_key=False)
                 recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
             if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves (run/done)
@@ -349,6 +365,10 @@ class Launcher:
             line = self.team.line() if self._phase == "training" else self.traversal.line()
             self.console.progress(line, force=force or phase != self._phase)
 
+    def on_done(self, msg: RunDone) -> None:
+        """The recorder's verdict on ``run/done``."""
+        self.done = msg
+
     def on_metrics(self, m: Metrics) -> None:
         """One learner's Metrics: into the team's progress (each robot's line in the debug log)."""
         self.team.add(m)
@@ -367,7 +387,8 @@ class Launcher:
                 if code == 0:
                     log.info("the run is over: every learner finished")
                 else:
-                    log.error("the run failed (recorder status %d); see %s", code, self.run_dir / "summary.json")
+                    why = self.done.reason if self.done is not None else "the recorder said nothing on run/done"
+                    log.error("the run failed (recorder status %d): %s; see %s", code, why, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
             for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
                 if c.service in RESTARTABLE and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
@@ -377,7 +398,7 @@ class Launcher:
                 log.error("%s; ending the run now (a refusal would only repeat). Its log (%s) ends:\n%s",
                           self.failure, refused.log_path, tail(refused.log_path))
                 return 1
-            if failed_at is None and (bad := self.failed()) is not None:
+            if failed_at is None and (bad := self.failed()) is not None and bad is not recorder:  # its verdict: above
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
                 failed_at, self.failure, self.failure_code = time.monotonic(), failure_reason(bad), bad.proc.returncode
@@ -405,10 +426,14 @@ class Launcher:
             if c is not None:
                 entry.update(pid=c.proc.pid, exit_code=c.proc.returncode)
         summary["status"] = status
-        summary["wall_time_s"] = round(wall, 3)
+        summary["wall_time_s"] = round(wall + summary.get("earlier_wall_time_s", 0.0), 3)  # a resumed run's attempts add up
         summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode, "restarts": c.restarts}
                                for c in self.children}
-        atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
+        try:
+            atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
+        except OSError as exc:
+            log.error("could not write %s: %s (%s)", path, exc.strerror, disk_words(self.run_dir))
+            return
         log.info("summary: %s", path)
 
 
@@ -474,35 +499,73 @@ def failure_reason(child: Child) -> str:
 
 
 def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
-    """``swarmmap prepare``: check the run as ``up`` would, then write its config.yaml (and its
-    credentials) and print its path; nothing is written when a check fails."""
+    """``swarmmap prepare``: check the run as ``up`` would (its run directory too), then write its
+    config.yaml (and its credentials) and print its path; nothing is written when a check fails."""
     try:
         cfg = prepare(cfg)
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
+        return 2
+    if (why := run_dir_problem(cfg)) is not None:
+        log.error("refusing to prepare: %s", why)
         return 2
     check_run(cfg, endpoints=True)
     print(write_config(cfg))
     return 0
 
 
-def other_run_in(cfg: RunConfig) -> str | None:
-    """Why ``cfg.run_dir`` cannot take this run: it holds one with other settings (its
-    checkpoints would be refused and its outputs overwritten); None when it can."""
+@dataclass(frozen=True)
+class WayOut:
+    """How a user of one launcher names another run directory, and asks for a resume."""
+
+    other: str = "choose another --run-dir"
+    resume: str = "--resume"
+
+
+def run_dir_problem(cfg: RunConfig, ways: WayOut = WayOut()) -> str | None:
+    """Why ``cfg.run_dir`` cannot take this run, naming the way out; None when it can. A finished
+    run is never overwritten; an interrupted one is resumed only when asked (``up.resume``), and
+    only by a run with its settings (:func:`~swarmmap.shared.fingerprint.settings_fingerprint`)."""
+    run_dir, state = cfg.run_dir, run_state(cfg.run_dir)
+    if state == "new":
+        if cfg.up.resume:
+            log.info("%s holds no run to resume: this run starts afresh there", run_dir)
+        return None
+    if state == "finished":
+        ended = local_time((read_summary(run_dir) or {}).get("finished"))
+        return (f"{run_dir} holds a finished run{f' (it ended {ended})' if ended else ''}, which is never overwritten; "
+                f"{ways.other}, or move that one away")
+    if not cfg.up.resume:
+        return f"{run_dir} holds a run that did not finish ({unfinished_words(run_dir)}); resume it with {ways.resume}, or {ways.other}"
+    return other_settings_in(cfg, ways)
+
+
+def unfinished_words(run_dir: Path) -> str:
+    """How the run in ``run_dir`` ended without finishing, from its summary."""
+    summary = read_summary(run_dir)
+    if summary is None:
+        return "no summary: it is still running, or it stopped without one"
+    if summary.get("status") == 130:
+        return "it was interrupted"
+    reason = str(summary.get("reason", ""))
+    return f"it failed: {reason[:200]}{'...' if len(reason) > 200 else ''}"
+
+
+def other_settings_in(cfg: RunConfig, ways: WayOut = WayOut()) -> str | None:
+    """Why ``cfg.run_dir`` cannot be resumed by this run: its config holds other settings (its
+    checkpoints would be refused and its outputs mixed with another run's); None when it can."""
     path = cfg.run_dir / "config.yaml"
     if not path.exists():
-        return None
+        return None  # the checkpoints, if any, carry their own fingerprints
     try:
         old = validate_config(yaml.safe_load(path.read_text()) or {})
     except ConfigError as exc:
-        return f"{path} holds a config this version refuses ({exc.message.splitlines()[-1].strip()}); choose another --run-dir"
+        return f"{path} holds a config this version refuses ({exc.message.splitlines()[-1].strip()}); {ways.other}"
     except Exception as exc:  # noqa: BLE001 - any unreadable config is named, never overwritten
         return f"{path} cannot be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
-    before, now = settings_fingerprint(old), settings_fingerprint(cfg)
-    if before == now:
+    if (diff := fingerprint_diff(settings_fingerprint(old), settings_fingerprint(cfg))) == "":
         return None
-    diff = ", ".join(f"{k} {before[k]!r} there, {v!r} here" for k, v in now.items() if before.get(k) != v)
-    return f"{cfg.run_dir} holds a run with other settings ({diff}); choose another --run-dir, or remove it to start afresh"
+    return f"{cfg.run_dir} holds a run with other settings ({diff}); {ways.other}, or remove it to start afresh"
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
@@ -512,7 +575,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
         return 2
-    if (why := other_run_in(launcher.cfg)) is not None:
+    if (why := run_dir_problem(launcher.cfg)) is not None:
         log.error("refusing to start: %s", why)
         return 2
     return launcher.run()

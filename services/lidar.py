@@ -8,6 +8,9 @@ Run-book: ``swarmmap lidar --robot I --config RUN_DIR/config.yaml``.
   ``robots/<I>/samples``; the end of the traversal is passed on as ``last``.
   ``--record FILE`` also writes the served stream to a recording (see
   :mod:`swarmmap.shared.recording`), completed when the traversal ends or the streamer stops.
+  At most ``INBOX_SCANS`` scans wait for the sensor model: when more come than it takes, the
+  scans' subscription waits, and so does the world's reliable publisher (its back pressure:
+  at ``world.time_scale`` 0 the world drives as fast as the streamers take its scans).
 - Replay: ``--replay FILE`` needs no world: once its learner is alive it serves the
   recording's points, exactly as recorded, at the recorded rate times ``--replay-speed``
   (0: as fast as the learner takes them).
@@ -30,6 +33,33 @@ from swarmmap.shared.recording import RecordingError, RecordingWriter, read_reco
 from swarmmap.shared.sensing import beam_samples, sensor_model
 
 log = logging.getLogger("lidar")
+INBOX_SCANS = 16  # scans that may wait for the sensor model (a few seconds of scans at any scan rate)
+
+
+class Inbox:
+    """Scans waiting for the sensor model, at most ``size``. A full inbox holds the Zenoh callback
+    that puts a scan until there is room (or the streamer stops: the scan is then dropped), so
+    that a slow streamer slows the world's publisher instead of growing without bound."""
+
+    def __init__(self, stop: threading.Event, size: int = INBOX_SCANS):
+        self.stop = stop
+        self.queue: queue.Queue[Scan] = queue.Queue(size)
+
+    def put(self, scan: Scan) -> None:
+        """Add ``scan``, waiting while the inbox is full (the Zenoh callback: back pressure)."""
+        while not self.stop.is_set():
+            try:
+                self.queue.put(scan, timeout=0.2)
+                return
+            except queue.Full:
+                continue
+
+    def get(self, timeout: float) -> Scan | None:
+        """The oldest scan, or None when none came within ``timeout`` seconds."""
+        try:
+            return self.queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
 
 
 class SensorModel:
@@ -68,7 +98,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
 
 def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
     keys = Keys(cfg.key_prefix, cfg.run_id)
-    inbox: queue.Queue[Scan] = queue.Queue()
+    inbox = Inbox(stop)
     model = SensorModel(cfg, robot)
     recorder = None
     if cfg.lidar.record:
@@ -77,14 +107,12 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
         bus.end_with_run(stop)
         out = bus.publisher(keys.samples(robot))
-        bus.subscribe(keys.scan(robot), Scan, inbox.put)
+        bus.subscribe(keys.scan(robot), Scan, inbox.put, direct=True)  # a full inbox holds the world back
         bus.announce()
         count = points = 0
         try:
             while not stop.is_set():
-                try:
-                    scan = inbox.get(timeout=0.2)
-                except queue.Empty:
+                if (scan := inbox.get(timeout=0.2)) is None:
                     continue
                 samples = model.samples(scan)
                 payload = encode(samples)

@@ -14,12 +14,17 @@ Entities (pixel coordinates of the map grid, north up):
 - ``world/plan``: the ground-truth occupancy (static); ``world/robots/<i>/pose``,
   ``world/robots/<i>/trajectory`` and ``world/robots/<i>/scan`` (latest scan's hits), on the
   ``sim_time`` timeline (and on ``round`` at the newest round reported so far); ``world/graph``: the communication graph between the robots.
+  A trajectory is logged in pieces of at most ``TRAJECTORY_PIECE`` points: a scan re-logs only
+  the newest piece (``trajectory``), finished ones stay as ``trajectory/<k>``, and a robot that
+  moved less than half a map cell adds no point, so the recording grows with the path's length,
+  not with its square.
 - ``maps/mean/robot-<i>`` and ``maps/std/robot-<i>``: colour images, on ``round``.
 - ``curves/val_bce/robot-<i>``, ``curves/consensus/robot-<i>``: the learners' metrics, on
   ``round``; ``observer/map_time_s``: seconds per map.
 
 Sinks, any of them together: ``observer.save`` (an .rrd file; ``swarmmap up`` saves
-``RUN_DIR/recording.rrd``), ``observer.spawn`` (a local viewer), ``observer.connect`` (a viewer
+``RUN_DIR/recording.rrd``; one there already, a resumed run's, is kept and this recording goes
+to ``recording-2.rrd``), ``observer.spawn`` (a local viewer), ``observer.connect`` (a viewer
 at a gRPC URL) and ``observer.serve_web`` (the web viewer, for containers and remote machines).
 """
 
@@ -51,11 +56,13 @@ from swarmmap.shared.models import StochasticNet, pick_device, set_flat
 from swarmmap.shared.networks import build_network, has_std
 from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.rundir import unused_path
 from swarmmap.shared.runtime import die_with_parent
 
 log = logging.getLogger("swarmmap.observer")
 WATCH_RING = 1024  # scans and metrics that may wait for the observer before the oldest are dropped
 FINAL_STATES_WAIT_S = 10.0  # once the run is over, how long the learners' final States may take to arrive
+TRAJECTORY_PIECE = 100  # points of a robot's trajectory logged at once (the newest piece)
 
 ROBOT_COLOURS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
                           [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8)
@@ -108,8 +115,9 @@ def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> tu
     sinks, names, procs = [], [], []
     if s.save is not None:
         s.save.parent.mkdir(parents=True, exist_ok=True)
-        sinks.append(rr.FileSink(str(s.save)))
-        names.append(f"file {s.save}")
+        save = unused_path(s.save)  # a resumed run keeps the recording of its earlier attempt
+        sinks.append(rr.FileSink(str(save)))
+        names.append(f"file {save}")
     if s.spawn:
         rerun_cli("--port", str(s.grpc_port), "--bind", "127.0.0.1", detach=True)
         sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{s.grpc_port}/proxy"))
@@ -130,6 +138,28 @@ def open_sinks(cfg: RunConfig, rec: rr.RecordingStream, bp: rrb.Blueprint) -> tu
         procs.append(rerun_cli("--serve-web", "--bind", s.bind, "--web-viewer-port", str(s.web_port),
                                f"rerun+http://{host}:{s.grpc_port}/proxy"))
     return names, procs
+
+
+class Trajectory:
+    """A robot's path as the observer logs it: the newest piece (at most ``piece`` points) and
+    how many pieces came before it; a point closer than ``min_step`` to the last one is not added."""
+
+    def __init__(self, min_step: float, piece: int = TRAJECTORY_PIECE):
+        self.min_step, self.piece = min_step, piece
+        self.done = 0  # finished pieces
+        self.points: list[list[float]] = []
+
+    def add(self, x: float, y: float) -> tuple[bool, list[list[float]] | None]:
+        """Add a pose: whether the newest piece changed, and the piece this finished (when the
+        newest was full; the next one starts where it ended)."""
+        if self.points and np.hypot(x - self.points[-1][0], y - self.points[-1][1]) < self.min_step:
+            return False, None
+        finished = None
+        if len(self.points) >= self.piece:
+            finished, self.points = self.points, self.points[-1:]
+            self.done += 1
+        self.points.append([x, y])
+        return True, finished
 
 
 @dataclass(frozen=True)
@@ -157,7 +187,7 @@ class Observer:
         self.seen_round: dict[int, int] = {}  # newest State round received per learner
         self.decompressor = Decompressor()
         self.mapped_round: dict[int, int] = {}
-        self.trajectories: dict[int, list[list[float]]] = {}
+        self.trajectories: dict[int, Trajectory] = {}
         self.positions: dict[int, np.ndarray] = {}
         self.scans_seen: dict[int, int] = {}
         self.states_in = self.skipped = 0
@@ -207,8 +237,6 @@ class Observer:
             return
         x, y, _ = scan.pose
         self.positions[i] = np.array([x, y])
-        path = self.trajectories.setdefault(i, [])
-        path.append([x, y])
         hit = scan.hit.numpy().astype(bool)
         ang, rng = scan.angles.numpy()[hit], scan.ranges.numpy()[hit]
         hits = np.stack([x + rng * np.cos(ang), y + rng * np.sin(ang)], axis=1)
@@ -216,9 +244,19 @@ class Observer:
         self.rec.set_time("sim_time", duration=scan.t)
         self.rec.set_time("round", sequence=self.latest_round)  # so the plan view shows the robots on either timeline
         self.rec.log(f"world/robots/{i}/pose", rr.Points2D(self.pixel([x, y]), radii=4, colors=c, labels=str(i)))
-        self.rec.log(f"world/robots/{i}/trajectory", rr.LineStrips2D([self.pixel(np.array(path))], colors=c))
+        self.log_trajectory(i, x, y)
         self.rec.log(f"world/robots/{i}/scan", rr.Points2D(self.pixel(hits), radii=1.5, colors=c))
         self.log_graph()
+
+    def log_trajectory(self, i: int, x: float, y: float) -> None:
+        """Log the newest piece of robot ``i``'s trajectory (and a piece it finished, for good)."""
+        path = self.trajectories.setdefault(i, Trajectory(self.s.map_resolution_m / 2))
+        changed, finished = path.add(x, y)
+        if finished is not None:
+            self.rec.log(f"world/robots/{i}/trajectory/{path.done - 1}", rr.LineStrips2D([self.pixel(np.array(finished))],
+                                                                                         colors=colour(i)))
+        if changed:
+            self.rec.log(f"world/robots/{i}/trajectory", rr.LineStrips2D([self.pixel(np.array(path.points))], colors=colour(i)))
 
     def log_graph(self) -> None:
         edges = [self.pixel(np.array([self.positions[i], self.positions[j]]))

@@ -2,9 +2,10 @@
 
 The plan loads (with the loaders the world uses), its waypoints exist and there is one path per
 robot (or paths can be planned), the torch devices exist on this machine, Zenoh's endpoints and
-config file are usable, the run directory (and a recording folder) can be written, a graph file
-exists. Every problem found is reported at once, each naming the value and the fix, as one
-ConfigError (exit status 2), before a run directory, credentials or a process exist.
+config file are usable, the run directory (and a recording folder) can be written (a file is
+really written there: a read-only or full disk is refused), a graph file exists. Every problem
+found is reported at once, each naming the value and the fix, as one ConfigError (exit status
+2), before a run directory, credentials or a process exist.
 
     facts = check_run(cfg, endpoints=True)   # cfg as prepared (its run_dir resolved)
     print(facts.describe())                  # plan, rooms, size, path lengths, coverage
@@ -12,11 +13,11 @@ ConfigError (exit status 2), before a run directory, credentials or a process ex
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from swarmmap.shared.config import ConfigError, RunConfig, ZenohSettings, did_you_mean
+from swarmmap.shared.disk import existing, write_problem
 
 # Zenoh's link protocols, and those whose address is host:port.
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
@@ -111,16 +112,17 @@ def device_problem(where: str, name: str) -> str | None:
 
 
 def writable_problem(where: str, path: Path) -> str | None:
-    """Why folder ``path`` cannot be created or written by this user, or None (nothing is created)."""
+    """Why folder ``path`` cannot be created or written by this user, or None: a file is really
+    written and removed in it (or in its nearest existing ancestor), so that a read-only disk and a
+    full one are found too, for root as for anyone (nothing is left behind)."""
     if path.exists() and not path.is_dir():
         return f"{where}: {path} is a file, not a folder; choose another"
-    probe = path
-    while not probe.exists():
-        probe = probe.parent
+    probe = existing(path)
     if not probe.is_dir():
         return f"{where}: {path} lies under {probe}, which is a file; choose another folder"
-    if not os.access(probe, os.W_OK | os.X_OK):
-        return f"{where}: {probe} is not writable by this user, so {path} cannot be made there; choose another folder"
+    if (why := write_problem(probe)) is not None:
+        made = "" if probe == path else f", so {path} cannot be made there"
+        return f"{where}: {why}{made}; choose another folder"
     return None
 
 

@@ -15,10 +15,19 @@ It also decides when the run is over, and says so on ``run/done`` (``RunDone``),
 every other service exits: the run succeeded when every learner sent its final ``Metrics``;
 it failed when a learner left before finishing (its liveliness token vanished: it crashed or
 was killed), or the world or a lidar streamer left while still needed, and did not come back
-within ``recorder.rejoin_timeout_s`` (``swarmmap up`` restarts crashed services), or when a
-learner never came alive within ``recorder.start_timeout_s``. The recorder then waits up to
+within ``recorder.rejoin_timeout_s`` (``swarmmap up`` restarts crashed services), when a
+learner never came alive within ``recorder.start_timeout_s``, when, once every learner is
+alive, the run made no progress (no new Metrics, no scans) for ``recorder.stall_timeout_s``
+(the reason names the learners that hold it up), or when the recorder cannot write the run directory (a full disk, one made
+read-only: the reason names the file and the disk). The recorder then waits up to
 ``recorder.linger_s`` for the other services to leave and exits 0 (success) or 1 (failure),
 so ``docker compose up --exit-code-from recorder`` and a SLURM job end with the run's status.
+It refuses to start (status 2) on a run directory it cannot write or that holds a finished run.
+
+A resumed run (``swarmmap up --resume``) goes on in the same files: rows of ``metrics.csv``
+already there are not written again (a learner that resumes from its checkpoint reports some
+rounds twice), ``summary.json`` keeps the first attempt's start and ``first_val_bce`` and adds
+up the attempts' wall time.
 
 Its log says what the run is doing, whoever launched it: the phases (every learner alive, the
 traversal, the training), a progress line every ``PROGRESS_EVERY_S`` seconds (the scans so
@@ -42,8 +51,10 @@ import numpy as np
 from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, fail
+from swarmmap.shared.disk import disk_words, is_full, write_problem
 from swarmmap.shared.progress import PROGRESS_EVERY_S, TeamProgress, TraversalProgress, duration
 from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan, WorldMap
+from swarmmap.shared.rundir import read_summary, run_state
 
 log = logging.getLogger("recorder")
 
@@ -51,38 +62,89 @@ METRICS_COLUMNS = ["robot", "round", "wall_time_s", "val_bce", "consensus_error"
                    "compute_s", "wait_s", "send_s", "n_points", "final"]
 # Services whose tokens say nothing about the run's health (the launcher, tools, Algorithm 1 readiness).
 BYSTANDERS = ("up", "status", "exchange", "router", "recorder")
+DISK_CHECK_S = 2.0  # how often the recorder looks at the run directory's free space
+
+
+def cannot_write(path: Path, exc: OSError) -> str:
+    """A write that failed, in words: the file, the system's reason and the disk."""
+    return f"the recorder cannot write {path}: {exc.strerror or exc} ({disk_words(path.parent)})"
 
 
 class MetricsRecorder:
-    """Appends every Metrics message to metrics.csv and keeps the first and last per robot."""
+    """Appends every Metrics message to metrics.csv and keeps the first and last per robot.
+
+    On a resumed run it goes on after the rows already there (a half-written last row, left by
+    a recorder killed while writing it, is dropped), counts them as the first and latest, and
+    does not write a (robot, round, final) row that is there already. A failed write raises
+    OSError."""
 
     def __init__(self, path: Path):
         self.path = path
         self._lock = threading.Lock()
+        self.first: dict[int, Metrics] = {}
+        self.final: dict[int, Metrics] = {}
+        self.latest: dict[int, Metrics] = {}
+        self._written: set[tuple[int, int, bool]] = set()
         resuming = path.exists() and path.stat().st_size > 0  # a resumed run keeps the rows it had
+        if resuming:
+            for row in self._earlier_rows():
+                self._keep(row)
         self._file = path.open("a" if resuming else "w", newline="")
         self._csv = csv.writer(self._file)
         if not resuming:
             self._csv.writerow(METRICS_COLUMNS)
         self._file.flush()
-        self.first: dict[int, Metrics] = {}
-        self.final: dict[int, Metrics] = {}
-        self.latest: dict[int, Metrics] = {}
 
-    def add(self, m: Metrics) -> None:
+    def _earlier_rows(self) -> list[Metrics]:
+        """The rows already in the file, as Metrics; a last row without its line end is cut off."""
+        data = self.path.read_bytes()
+        whole = data.rfind(b"\n") + 1
+        if whole < len(data):
+            log.warning("%s: dropping a half-written last row (%r)", self.path, data[whole:][:80].decode(errors="replace"))
+            with self.path.open("r+b") as f:
+                f.truncate(whole)
+        rows = []
+        for row in csv.DictReader(io.StringIO(data[:whole].decode(errors="replace"), newline="")):
+            try:
+                rows.append(Metrics.model_construct(
+                    run="", sender=int(row["robot"]), round=int(row["round"]), wall_time_s=float(row["wall_time_s"]),
+                    val_bce=float(row["val_bce"]), consensus_error=float(row["consensus_error"]),
+                    bytes_sent=int(row["bytes_sent"]), bytes_received=int(row["bytes_received"]), pid=0, refused=0,
+                    final=row["final"] == "1"))
+            except (KeyError, TypeError, ValueError):
+                continue  # a row of an older layout: kept in the file, not counted
+        return rows
+
+    def _keep(self, m: Metrics) -> bool:
+        """Count ``m``; False when its row is written already."""
+        key = (m.sender, m.round, bool(m.final))
+        self.first.setdefault(m.sender, m)
+        self.latest[m.sender] = m
+        if m.final:
+            self.final[m.sender] = m
+        if key in self._written:
+            return False
+        self._written.add(key)
+        return True
+
+    def add(self, m: Metrics) -> bool:
+        """Write ``m``'s row unless it is there already; whether it was written."""
         with self._lock:
+            if not self._keep(m):
+                return False
             self._csv.writerow([m.sender, m.round, f"{m.wall_time_s:.3f}", f"{m.val_bce:.6f}",
                                 f"{m.consensus_error:.6f}", m.bytes_sent, m.bytes_received, f"{m.compute_s:.3f}",
                                 f"{m.wait_s:.3f}", f"{m.send_s:.3f}", m.n_points, int(m.final)])
             self._file.flush()
-            self.first.setdefault(m.sender, m)
-            self.latest[m.sender] = m
-            if m.final:
-                self.final[m.sender] = m
+            return True
 
     def close(self) -> None:
+        """Close the file (a flush that fails is the failure already reported)."""
         with self._lock:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError:
+                pass
 
 
 class RunTracker:
@@ -132,6 +194,12 @@ class RunTracker:
                 return
             self.away[key] = (now, why)
 
+    def fail(self, why: str) -> None:
+        """End the run as failed for ``why`` (the first failure is the one reported)."""
+        with self._lock:
+            if self.failure is None and not self._all_finished():
+                self.failure = why
+
     def learners_missing(self) -> list[int]:
         """Learners never seen alive."""
         with self._lock:
@@ -154,6 +222,68 @@ class RunTracker:
             if self._all_finished():
                 return True, f"all {self.robots} learners finished"
             return None
+
+
+class StallWatch:
+    """When the run last made progress (a new Metrics or scan) and, once it has made none for
+    ``timeout`` seconds, who holds it up: the learners that reported nothing, else the unfinished
+    ones whose newest round is the lowest. Pure bookkeeping, like RunTracker."""
+
+    def __init__(self, robots: int, timeout: float, now: float | None = None):
+        self.robots, self.timeout = robots, timeout
+        self.last = time.monotonic() if now is None else now
+        self.rounds: dict[int, int] = {}  # newest round each learner reported
+        self.finished: set[int] = set()
+        self.scans = 0
+        self._lock = threading.Lock()
+
+    def on_metrics(self, m: Metrics, now: float | None = None) -> None:
+        """A learner reported: progress, and its newest round."""
+        with self._lock:
+            self.last = time.monotonic() if now is None else now
+            if m.sender < self.robots:
+                self.rounds[m.sender] = max(m.round, self.rounds.get(m.sender, -1))
+                if m.final:
+                    self.finished.add(m.sender)
+
+    def on_scan(self, now: float | None = None) -> None:
+        """A robot scanned: progress of the traversal."""
+        with self._lock:
+            self.last = time.monotonic() if now is None else now
+            self.scans += 1
+
+    def on_ready(self, now: float | None = None) -> None:
+        """Every learner is alive: the run has begun (until then the start timeouts apply)."""
+        with self._lock:
+            self.last = time.monotonic() if now is None else now
+
+    def held_up_by(self) -> list[int]:
+        """The learners that hold the run up: those that reported nothing, else the unfinished
+        ones at the lowest round."""
+        with self._lock:
+            silent = [r for r in range(self.robots) if r not in self.rounds]
+            if silent:
+                return silent
+            behind = {r: k for r, k in self.rounds.items() if r not in self.finished}
+            lowest = min(behind.values(), default=None)
+            return sorted(r for r, k in behind.items() if k == lowest)
+
+    def stalled(self, now: float | None = None) -> str | None:
+        """Why the run is stalled, naming who holds it up; None while it makes progress."""
+        now = time.monotonic() if now is None else now
+        if now - self.last < self.timeout:
+            return None
+        who = self.held_up_by()
+        with self._lock:
+            if not self.rounds:
+                held = (f"no scan came from the world and no learner reported (waiting for learner(s) {who})" if not self.scans
+                        else f"learner(s) {who} reported no round after the {self.scans} scans of the traversal")
+            elif who and who[0] not in self.rounds:
+                held = f"learner(s) {who} reported no round; the others are at round {max(self.rounds.values())}"
+            else:
+                newest = max(self.rounds.values())
+                held = f"learner(s) {who} are at round {self.rounds[who[0]]}, the lowest (the team's newest is {newest})"
+        return f"the run made no progress (no new Metrics, no scans) for {self.timeout:.0f} s (recorder.stall_timeout_s): {held}"
 
 
 class PhaseLog:
@@ -208,8 +338,11 @@ def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     atomic_write_bytes(run_dir / "groundtruth.npz", buf.getvalue())
 
 
-def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wall: float, started: float | None = None) -> dict:
-    """What ``summary.json`` holds: the run's outcome and, per learner, its first and last metrics."""
+def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wall: float, started: float | None = None,
+            earlier: dict | None = None) -> dict:
+    """What ``summary.json`` holds: the run's outcome and, per learner, its first and last
+    metrics; with ``earlier`` (the summary of the attempts this one resumes) its start, and the
+    wall time of every attempt added up."""
     learners = {}
     for robot in range(cfg.robots):
         first, last = metrics.first.get(robot), metrics.final.get(robot) or metrics.latest.get(robot)
@@ -224,10 +357,18 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "bytes_received": last.bytes_received if last else None,
             "refused": last.refused if last else None,
         }
-    return {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),
-            "transport": cfg.transport(), "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
-            "started": round(time.time() - wall if started is None else started, 3), "finished": round(time.time(), 3),
-            "learners": learners}
+    started = time.time() - wall if started is None else started
+    doc = {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),
+           "transport": cfg.transport(), "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
+           "started": round(started, 3), "finished": round(time.time(), 3), "learners": learners}
+    if earlier:
+        for robot, entry in learners.items():  # the first attempt's, as it was (metrics.csv rounds it)
+            if (first_bce := ((earlier.get("learners") or {}).get(robot) or {}).get("first_val_bce")) is not None:
+                entry["first_val_bce"] = first_bce
+        before = float(earlier.get("wall_time_s") or 0.0)
+        doc.update(wall_time_s=round(before + wall, 3), earlier_wall_time_s=round(before, 3),
+                   started=earlier.get("started", doc["started"]), attempts=int(earlier.get("attempts", 1)) + 1)
+    return doc
 
 
 def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
@@ -237,7 +378,10 @@ def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
     if phases.team.started:
         log.info("%s", phases.team.line())
     log.info("%s", closing_line(doc))
-    atomic_write_text(run_dir / "summary.json", json.dumps(doc, indent=2) + "\n")
+    try:
+        atomic_write_text(run_dir / "summary.json", json.dumps(doc, indent=2) + "\n")
+    except OSError as exc:  # the verdict still goes out on run/done
+        log.error("%s", cannot_write(run_dir / "summary.json", exc))
 
 
 def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
@@ -260,67 +404,134 @@ def others_alive(bus: Bus) -> set[tuple[str, str]]:
     return {(s, i) for s, i in bus.alive() if s not in BYSTANDERS}
 
 
+def refuse_run_dir(run_dir: Path) -> None:
+    """Stop (status 2) on a run directory that cannot be written or that holds a finished run."""
+    if (why := write_problem(run_dir)) is not None:
+        fail(f"config error:\n  run_dir: {why}; choose a run directory on a disk this user may write")
+    if run_state(run_dir) == "finished":
+        fail(f"config error:\n  run_dir: {run_dir} holds a finished run, which is never overwritten; choose another")
+
+
+class Recorder:
+    """One run's recording: what arrives goes into the run directory, and the rules of the end
+    (RunTracker, StallWatch, the disk) decide when the run is over."""
+
+    def __init__(self, cfg: RunConfig):
+        self.cfg, self.run_dir, self.s = cfg, cfg.run_dir, cfg.recorder
+        self.t0, self.started = time.monotonic(), time.time()
+        self.earlier = read_summary(self.run_dir)  # the attempts this one resumes, if any
+        self.tracker = RunTracker(cfg.robots, self.s.rejoin_timeout_s)
+        self.stall = StallWatch(cfg.robots, self.s.stall_timeout_s)
+        self.phases = PhaseLog(cfg.robots, cfg.rounds())
+        self.metrics = MetricsRecorder(self.run_dir / "metrics.csv")
+        self._disk_checked = -float("inf")
+        self._ready = False  # every learner came alive
+
+    def on_metrics(self, m: Metrics) -> None:
+        """A learner's Metrics: into metrics.csv (a failed write fails the run), the rules and the log."""
+        try:
+            self.metrics.add(m)
+        except OSError as exc:
+            self.tracker.fail(cannot_write(self.metrics.path, exc))
+        self.tracker.on_metrics(m)
+        self.stall.on_metrics(m)
+        self.phases.team.add(m)
+        log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
+                 m.consensus_error, "  (final)" if m.final else "")
+
+    def on_scan(self, scan: Scan) -> None:
+        """A robot's scan: progress, and the traversal's line."""
+        self.stall.on_scan()
+        self.phases.traversal.add(scan)
+
+    def fetch_ground_truth(self, bus: Bus, stop: threading.Event) -> None:
+        """Ask the world for its map and write the ground truth (a failed write fails the run)."""
+        world = bus.query(bus.keys.world_map(), WorldMap, timeout=self.cfg.world_wait_s(), stop=stop)
+        if world is not None:
+            try:
+                save_ground_truth(self.run_dir, world)
+            except OSError as exc:
+                self.tracker.fail(cannot_write(self.run_dir / "groundtruth.npz", exc))
+
+    def outcome(self) -> tuple[bool, str] | None:
+        """(ok, reason) once the run is over, else None."""
+        now = time.monotonic()
+        if now - self._disk_checked >= DISK_CHECK_S:
+            self._disk_checked = now
+            if is_full(self.run_dir):
+                self.tracker.fail(f"the disk of the run directory is full ({disk_words(self.run_dir)})")
+        if (verdict := self.tracker.outcome(now)) is not None:
+            return verdict
+        missing = self.tracker.learners_missing()
+        if missing and now - self.t0 > self.s.start_timeout_s:
+            return False, f"learner(s) {missing} never came alive within {self.s.start_timeout_s:.0f} s"
+        if not missing and not self._ready:
+            self._ready = True
+            self.stall.on_ready(now)
+        if (why := self.stall.stalled(now)) is not None:
+            self.tracker.fail(why)
+            return self.tracker.outcome(now)
+        return None
+
+    def summary(self, ok: bool, reason: str) -> dict:
+        """summary.json's content for this outcome (with who held a stalled run up)."""
+        doc = summary(self.cfg, self.metrics, ok, reason, time.monotonic() - self.t0, self.started, self.earlier)
+        if not ok and reason.startswith("the run made no progress"):
+            doc["held_up_by"] = self.stall.held_up_by()
+        return doc
+
+
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """Record the run until it is over; returns 0 when every learner finished, else 1."""
     if cfg.run_dir is None:
         fail("config error:\n  run_dir: the recorder needs a run directory (--run-dir or SWARMMAP_RUN_DIR)")
-    run_dir, s = cfg.run_dir, cfg.recorder
+    run_dir = cfg.run_dir
+    refuse_run_dir(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if not (run_dir / "config.yaml").exists():  # `up` and the SLURM script wrote it already
         atomic_write_text(run_dir / "config.yaml", cfg.dump_yaml())
-    t0, started = time.monotonic(), time.time()
-    metrics = MetricsRecorder(run_dir / "metrics.csv")
-    tracker = RunTracker(cfg.robots, s.rejoin_timeout_s)
-    phases = PhaseLog(cfg.robots, cfg.rounds())
+    rec = Recorder(cfg)
     keys = Keys(cfg.key_prefix, cfg.run_id)
-
-    def on_metrics(m: Metrics) -> None:
-        metrics.add(m)
-        tracker.on_metrics(m)
-        phases.team.add(m)
-        log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
-                 m.consensus_error, "  (final)" if m.final else "")
-
-    def fetch_ground_truth() -> None:
-        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.world_wait_s(), stop=stop)
-        if world is not None:
-            save_ground_truth(run_dir, world)
-
     with Bus.open(cfg.zenoh, keys, "recorder", 0) as bus:
-        bus.subscribe(keys.metrics("*"), Metrics, on_metrics)
-        bus.subscribe(keys.scan("*"), Scan, phases.traversal.add)
+        bus.subscribe(keys.metrics("*"), Metrics, rec.on_metrics)
+        bus.subscribe(keys.scan("*"), Scan, rec.on_scan)
         for service in ("learner", "lidar", "world"):
-            bus.watch_alive(service, lambda ident, alive, service=service: tracker.on_alive(service, ident, alive))
+            bus.watch_alive(service, lambda ident, alive, service=service: rec.tracker.on_alive(service, ident, alive))
         done = bus.publisher(keys.run_done())
         bus.announce()
-        threading.Thread(target=fetch_ground_truth, name="ground-truth", daemon=True).start()
+        threading.Thread(target=rec.fetch_ground_truth, args=(bus, stop), name="ground-truth", daemon=True).start()
         log.info("recording run %s (%d robots, %d rounds) into %s; waiting for %d learner(s), %d lidar streamer(s) and the world",
                  cfg.run_id, cfg.robots, cfg.rounds(), run_dir, cfg.robots, cfg.robots)
         outcome = None
         while outcome is None and not stop.is_set():
-            phases.tick(tracker)
-            outcome = tracker.outcome()
-            if outcome is None and time.monotonic() - t0 > s.start_timeout_s and (missing := tracker.learners_missing()):
-                outcome = False, f"learner(s) {missing} never came alive within {s.start_timeout_s:.0f} s"
+            rec.phases.tick(rec.tracker)
+            outcome = rec.outcome()
             stop.wait(0.2)
-        interrupted = outcome is None
-        if interrupted:
-            outcome = False, f"the recorder was stopped before the run was over (finished: {sorted(tracker.finished)})"
-        ok, reason = outcome
-        msg = RunDone(run=cfg.run_id, sender=0, ok=ok, reason=reason, finished=sorted(tracker.finished))
-        write_summary(run_dir, summary(cfg, metrics, ok, reason, time.monotonic() - t0, started), phases)
-        # Say it until every other service has left (a late subscriber still hears it), bounded.
-        deadline = time.monotonic() + (0 if interrupted else s.linger_s)
-        done.put(msg)
-        notes = {r: f"val_bce {m.val_bce:.4f}" for r, m in dict(metrics.final).items()}
-        drawing = threading.Thread(target=draw_overview, args=(cfg, notes), name="overview")
-        if not interrupted:  # the learners wrote their maps before their final Metrics
-            drawing.start()
-        while time.monotonic() < deadline and others_alive(bus):
-            time.sleep(0.5)
-            done.put(msg)
-        if drawing.ident is not None:
-            drawing.join()
-    metrics.close()
+        ok = end_run(cfg, rec, bus, done, outcome)
+    rec.metrics.close()
     log.info("summary: %s", run_dir / "summary.json")
     return 0 if ok else 1
+
+
+def end_run(cfg: RunConfig, rec: Recorder, bus: Bus, done, outcome: tuple[bool, str] | None) -> bool:
+    """Write the summary, say the verdict on ``run/done`` until every other service has left
+    (bounded by ``recorder.linger_s``), draw the overview; whether the run succeeded."""
+    interrupted = outcome is None
+    if interrupted:
+        outcome = False, f"the recorder was stopped before the run was over (finished: {sorted(rec.tracker.finished)})"
+    ok, reason = outcome
+    msg = RunDone(run=cfg.run_id, sender=0, ok=ok, reason=reason, finished=sorted(rec.tracker.finished))
+    write_summary(cfg.run_dir, rec.summary(ok, reason), rec.phases)  # a disk that cannot take it is logged
+    done.put(msg)
+    # Say it until every other service has left (a late subscriber still hears it), bounded.
+    deadline = time.monotonic() + (0 if interrupted else cfg.recorder.linger_s)
+    notes = {r: f"val_bce {m.val_bce:.4f}" for r, m in dict(rec.metrics.final).items()}
+    drawing = threading.Thread(target=draw_overview, args=(cfg, notes), name="overview")
+    if not interrupted:  # the learners wrote their maps before their final Metrics
+        drawing.start()
+    while time.monotonic() < deadline and others_alive(bus):
+        time.sleep(0.5)
+        done.put(msg)
+    if drawing.ident is not None:
+        drawing.join()
+    return ok

@@ -279,7 +279,8 @@ class Bus:
             log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
 
     def subscribe(self, key_expr: str, model: type[M], callback: Callable[[M], None], *,
-                  sender_from_key: bool = True, check: Callable[[M], None] | None = None, newest: int = 0) -> None:
+                  sender_from_key: bool = True, check: Callable[[M], None] | None = None, newest: int = 0,
+                  direct: bool = False) -> None:
         """Call ``callback(message)`` for every valid ``model`` published on ``key_expr``.
 
         With ``sender_from_key`` the id in the key (``robots/<id>/``, ``learners/<id>/``) must
@@ -291,7 +292,9 @@ class Bus:
         (the observer, ``up``'s progress) passes ``newest=N``: messages then wait in a ring of
         the N newest (the oldest dropped) and a thread of its
         own runs the callback, so that a slow callback never slows a publisher
-        (bench/slow_subscriber.py).
+        (bench/slow_subscriber.py). ``direct`` runs the callback in Zenoh's receiving thread itself:
+        a callback that blocks then holds back the publishers (their back pressure) on purpose (a
+        lidar streamer whose inbox is full holds back the world's scans).
         """
 
         def handler(sample: zenoh.Sample) -> None:
@@ -312,7 +315,7 @@ class Bus:
                 log.exception("handler for %s failed", key)
 
         if newest <= 0:
-            self._handles.append(self.session.declare_subscriber(key_expr, handler))
+            self._handles.append(self.session.declare_subscriber(key_expr, zenoh.handlers.Callback(handler, indirect=not direct)))
             return
         sub = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(newest))
         self._handles.append(sub)

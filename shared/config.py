@@ -367,6 +367,9 @@ class RecorderSettings(Section):
     linger_s: float = Field(30.0, ge=0, description="once the run is over, how long to wait for the other services to leave")
     rejoin_timeout_s: float = Field(20.0, ge=0, description="a learner, lidar or the world that left while needed fails the run "
                                                              "unless it is back within this long (0: at once)")
+    stall_timeout_s: float = Field(600.0, gt=0, description="fail the run when, once every learner is alive, it makes no "
+                                                            "progress (no new Metrics, no scans) for this long, naming the "
+                                                            "learners that hold it up")
 
 
 class FaultSettings(Section):
@@ -411,6 +414,8 @@ class UpSettings(Section):
     start_timeout_s: float = Field(120.0, gt=0, description="how long to wait for services to come alive")
     restarts: int = Field(3, ge=0, description="restart a crashed learner, lidar or world up to this many times each "
                                                "(it resumes from its checkpoint and rejoins); 0: a crash ends the run")
+    resume: bool = Field(False, description="go on with the interrupted run in run_dir (its checkpoints, metrics and logs); "
+                                            "without it a run directory that holds a run is refused")
 
 
 class RunConfig(Section):

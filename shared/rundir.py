@@ -5,6 +5,7 @@ summary and the team's curve. The experiments, the run tools (``status``, ``runs
     rows = read_metrics(run_dir)          # {robot: [(round, val_bce), ...]}
     curve = team_curve(run_dir)           # rounds, seconds since the run started, mean val_bce
     info = run_info(run_dir)              # status, robots, rounds, final mean val_bce, start time
+    state = run_state(run_dir)            # new, finished or interrupted (what a new run may do there)
 """
 
 from __future__ import annotations
@@ -157,6 +158,29 @@ def config_numbers(run_dir: Path) -> tuple[int | None, int | None]:
 def is_run_dir(path: Path) -> bool:
     """Whether ``path`` holds a run (its config.yaml)."""
     return (path / "config.yaml").is_file()
+
+
+# What a run leaves in its directory as soon as it starts (any one of them: the run was there).
+RUN_FILES = ("config.yaml", "metrics.csv", "summary.json", "checkpoints")
+
+
+def run_state(run_dir: Path) -> str:
+    """``new`` (no run was there), ``finished`` (its summary says every learner finished) or
+    ``interrupted`` (a run began there and did not finish: it failed, was stopped, or is still going)."""
+    if not any((run_dir / name).exists() for name in RUN_FILES):
+        return "new"
+    summary = read_summary(run_dir)
+    return "finished" if summary is not None and summary.get("ok") is True else "interrupted"
+
+
+def unused_path(path: Path) -> Path:
+    """``path`` when nothing is there, else the first free ``<stem>-<n><suffix>`` beside it (a
+    resumed run's second recording is ``recording-2.rrd``: the first attempt's is kept)."""
+    n, free = 1, path
+    while free.exists() and free.stat().st_size > 0:
+        n += 1
+        free = path.with_name(f"{path.stem}-{n}{path.suffix}")
+    return free
 
 
 def local_time(epoch: float | None) -> str:

@@ -96,3 +96,26 @@ def recording_entities(path: Path) -> dict[str, set[str]]:
     for chunk in RrdReader(path).stream():
         timelines.setdefault(chunk.entity_path, set()).update(chunk.timeline_names)
     return timelines
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """``tmpfs(size, read_only=False)``: a fresh tmpfs of ``size`` (e.g. ``"200k"``) mounted under
+    ``tmp_path``, unmounted at the end; skips where this user may not mount (only root may)."""
+    import subprocess
+
+    mounted: list[Path] = []
+
+    def mount(size: str, read_only: bool = False) -> Path:
+        point = tmp_path / f"tmpfs-{len(mounted)}"
+        point.mkdir()
+        opts = f"size={size}" + (",ro" if read_only else "")
+        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(point)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip() or proc.returncode}")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in reversed(mounted):
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)

@@ -12,13 +12,14 @@
 # folder and the run directory, when the engine has just made them (root's and empty), to the
 # owner of /etc/swarmmap/compose.yaml (compose mounts its file there: the user who cloned the
 # repository), then, as the run directory's owner, runs `python -m swarmmap.services.claim start`:
-# it refuses a run directory holding another run, writes config.yaml, makes the run's CA (its key
-# in that process's memory only), forgets the robot claims of an earlier `up`, writes its verdict
-# to $SWARMMAP_ROBOT_CLAIMS/start, then signs each service's certificate until the run is over.
-# Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set) reads that verdict first and
-# stops, naming it, unless it is `ok` (compose v1 starts the others even when the start
-# container has exited); it then makes its own key in its own file system and asks the signer
-# for the certificate of the identity it serves (zenoh.signer).
+# it refuses a run directory holding a finished run, or one that did not finish unless
+# SWARMMAP_UP__RESUME=true resumes it (the same settings only), writes config.yaml, makes the
+# run's CA (its key in that process's memory only), forgets the robot claims of an earlier `up`,
+# writes its verdict to $SWARMMAP_ROBOT_CLAIMS/start, then signs each service's certificate until
+# the run is over. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set) reads that
+# verdict first and stops, naming it, unless it is `ok` (compose v1 starts the others even when
+# the start container has exited); it then makes its own key in its own file system and asks the
+# signer for the certificate of the identity it serves (zenoh.signer).
 set -eu
 run_dir=${SWARMMAP_RUN_DIR:-}
 shared=${SWARMMAP_ROBOT_CLAIMS:-}

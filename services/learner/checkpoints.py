@@ -4,8 +4,10 @@
 rho, optimizers, RNG states), the run id, the settings' fingerprint
 (:func:`~swarmmap.shared.fingerprint.settings_fingerprint`) and the learner's counters. Offline,
 the training points do not change: they are written once, beside it
-(``robot-<i>-data.pt``), so that frequent checkpoints stay small. Every file is written
-atomically; a checkpoint written with other settings is refused, never loaded.
+(``robot-<i>-data.pt``, with the fingerprint too), so that frequent checkpoints stay small.
+Every file is written atomically; a checkpoint or a training-points file written with other
+settings is refused, never loaded, and one that cannot be written (a full disk) stops the learner
+with a message naming the file and the disk.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import torch
 
 from swarmmap.services.learner.errors import LearnerError
 from swarmmap.shared.atomic import atomic_write_bytes
+from swarmmap.shared.disk import disk_words
+from swarmmap.shared.fingerprint import fingerprint_diff
 
 
 class Checkpoints:
@@ -38,14 +42,15 @@ class Checkpoints:
             doc = torch.load(self.path, map_location="cpu", weights_only=True)
         except Exception as exc:  # a checkpoint we cannot read is not silently ignored
             raise LearnerError(f"robot {self.robot}: cannot read checkpoint {self.path}: {exc}", 2) from None
-        mine, theirs = self.fingerprint, doc.get("fingerprint")
-        if theirs != mine:
-            what = ("it comes from an older swarmmap" if theirs is None else
-                    ", ".join(f"{k} {theirs.get(k)!r} there, {v!r} here" for k, v in mine.items() if theirs.get(k) != v))
-            raise LearnerError(f"robot {self.robot}: refusing to resume from {self.path}: it was written by a run "
-                               f"with other settings ({what}). Run into another --run-dir, or remove "
-                               f"{self.path.parent} to start this one afresh", 2)
+        self.refuse_other(self.path, doc.get("fingerprint"))
         return doc
+
+    def refuse_other(self, path: Path, theirs: dict | None) -> None:
+        """Raise LearnerError (status 2) when ``path`` was written with another fingerprint."""
+        if theirs != self.fingerprint:
+            raise LearnerError(f"robot {self.robot}: refusing to resume from {path}: it was written by a run "
+                               f"with other settings ({fingerprint_diff(theirs, self.fingerprint)}). Run into another "
+                               f"--run-dir, or remove {self.path.parent} to start this one afresh", 2)
 
     def save(self, k: int, theta: np.ndarray, node: dict, counters: dict, points: np.ndarray, labels: np.ndarray) -> None:
         """Atomically write what round ``k`` starts from (and, the first time offline, the points)."""
@@ -55,12 +60,17 @@ class Checkpoints:
         if self.online:
             doc |= data
         elif k == 0 or not self.data_path.exists():
-            buf = io.BytesIO()
-            torch.save(data | {"fingerprint": self.fingerprint}, buf)
-            atomic_write_bytes(self.data_path, buf.getvalue())
+            self.write(self.data_path, data | {"fingerprint": self.fingerprint})
+        self.write(self.path, doc)
+
+    def write(self, path: Path, doc: dict) -> None:
+        """``doc`` into ``path``, atomically; a write that fails stops the learner (status 1) naming the disk."""
         buf = io.BytesIO()
         torch.save(doc, buf)
-        atomic_write_bytes(self.path, buf.getvalue())
+        try:
+            atomic_write_bytes(path, buf.getvalue())
+        except OSError as exc:
+            raise LearnerError(f"robot {self.robot}: cannot write {path}: {exc.strerror or exc} ({disk_words(path.parent)})", 1) from None
 
     def points(self, doc: dict) -> tuple[np.ndarray, np.ndarray]:
         """The training points a checkpoint resumes with (in it, online; beside it, offline)."""
@@ -69,4 +79,5 @@ class Checkpoints:
                 doc = torch.load(self.data_path, map_location="cpu", weights_only=True)
             except Exception as exc:
                 raise LearnerError(f"robot {self.robot}: cannot read its training points {self.data_path}: {exc}", 2) from None
+            self.refuse_other(self.data_path, doc.get("fingerprint"))
         return doc["points"].numpy(), doc["labels"].numpy()

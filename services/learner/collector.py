@@ -1,10 +1,16 @@
-"""A robot's training points as its lidar streamer sends them (``robots/<i>/samples``)."""
+"""A robot's training points as its lidar streamer sends them (``robots/<i>/samples``).
+
+Offline it keeps every scan's points until the traversal ends; online only the newest
+``window_scans`` scans' (DiNNO's sliding window), so that a long traversal does not grow the
+learner's memory without bound.
+"""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from collections import deque
 
 import numpy as np
 
@@ -16,11 +22,11 @@ log = logging.getLogger("learner")
 
 
 class Collector:
-    """Buffers a robot's Samples until the one marked ``last``."""
+    """Buffers a robot's Samples until the one marked ``last``: every scan's, or the newest ``keep``."""
 
-    def __init__(self) -> None:
-        self.points: list[np.ndarray] = []
-        self.labels: list[np.ndarray] = []
+    def __init__(self, keep: int | None = None) -> None:
+        self.points: deque[np.ndarray] = deque(maxlen=keep)
+        self.labels: deque[np.ndarray] = deque(maxlen=keep)
         self.done = threading.Event()
         self.first = threading.Event()
         self.refused = 0  # Samples after the one marked last
@@ -65,4 +71,5 @@ class Collector:
             if not self.points:
                 return np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
             k = len(self.points) if last_scans is None else min(last_scans, len(self.points))
-            return np.concatenate(self.points[-k:]), np.concatenate(self.labels[-k:])
+            skip = len(self.points) - k
+            return (np.concatenate(list(self.points)[skip:]), np.concatenate(list(self.labels)[skip:]))

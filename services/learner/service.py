@@ -81,7 +81,7 @@ class RobotLearner:
     def __init__(self, cfg: RunConfig, robot: int, bus: Bus, device: torch.device):
         self.cfg, self.robot, self.bus, self.device = cfg, robot, bus, device
         self.s = s = cfg.learner
-        self.collector = Collector()
+        self.collector = Collector(s.window_scans if s.data == "online" else None)  # online: the window only
         bus.subscribe(bus.keys.samples(robot), Samples, self.collector.add)
         self.metrics_pub = bus.publisher(bus.keys.metrics(robot))
         # Over Zenoh, Algorithm 1 publishes every State; in process, the States the metrics are

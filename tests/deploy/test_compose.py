@@ -3,10 +3,11 @@ who is not root, with nothing set beforehand: the run is secure (every link mutu
 container holding only its own key, signed by the start of the run, which keeps the CA key in
 memory; each service's container mounts its own run only), ends by itself and is whole and
 owned by that user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
-runs five robots (replicas of one service that claim their ids, which a restarted container
-keeps), returns the recorder's status and keeps the first run whole beside it; a run directory
-holding an unfinished run with other settings is refused and left as it was, and no container
-of the refused run stays up. The image also builds behind a TLS-intercepting proxy when given
+on the same run id is refused, the finished run left as it was, and under another run id runs
+five robots (replicas of one service that claim their ids, which a restarted container keeps)
+and returns the recorder's status; a run directory holding an unfinished run with other
+settings is refused, resumed or not, and left as it was, and no container of the refused run
+stays up. The image also builds behind a TLS-intercepting proxy when given
 the site's CA."""
 
 from __future__ import annotations
@@ -152,12 +153,18 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
     assert_each_container_holds_its_own_key_only(clone, runs)
 
-    five = {"SWARMMAP_ROBOTS": "5"}
+    finished = {p: p.read_bytes() for p in (runs / "compose").rglob("*") if p.is_file()}
+    again = compose(clone, "up", "--exit-code-from", "recorder", env={"SWARMMAP_ROBOTS": "5"})
+    assert again.returncode != 0, output(again, clone)
+    logs = compose(clone, "logs", "start").stdout
+    assert "/runs/compose holds a finished run (it ended " in logs, logs[-3000:]
+    assert "never overwritten; choose another SWARMMAP_RUN_ID" in logs, logs[-3000:]
+    assert {p: p.read_bytes() for p in (runs / "compose").rglob("*") if p.is_file()} == finished
+    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five"}
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
     assert up.returncode == 0, output(up, clone, five)
-    assert_whole_run(runs / "compose", robots=5, rounds=60)
-    (kept,) = runs.glob("compose-*")  # the three robots' run, whole, beside it
-    assert_whole_run(kept, robots=3, rounds=60)
+    assert_whole_run(runs / "five", robots=5, rounds=60)
+    assert_whole_run(runs / "compose", robots=3, rounds=60)
     assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
     learners = compose(clone, "ps", "-a", "-q", "learner", env=five).stdout.split()
     served = {c: logged_robots(c) for c in learners}
@@ -181,9 +188,10 @@ def test_a_run_directory_holding_an_unfinished_run_with_other_settings_is_refuse
     for path in [other, *other.rglob("*")]:
         os.lchown(path, UID, GID)
     before = {p: p.read_bytes() for p in other.rglob("*") if p.is_file()}
-    up = compose(clone, "up", "--exit-code-from", "recorder", env={"SWARMMAP_RUN_ID": "other"})
-    assert up.returncode != 0, output(up, clone, {"SWARMMAP_RUN_ID": "other"})
-    logs = compose(clone, "logs", "start", env={"SWARMMAP_RUN_ID": "other"}).stdout
+    resume = {"SWARMMAP_RUN_ID": "other", "SWARMMAP_UP__RESUME": "true"}
+    up = compose(clone, "up", "--exit-code-from", "recorder", env=resume)
+    assert up.returncode != 0, output(up, clone, resume)
+    logs = compose(clone, "logs", "start", env=resume).stdout
     assert "robots 2 there, 3 here" in logs and "SWARMMAP_RUN_ID" in logs, logs[-3000:]
     assert wait_until(lambda: not running(), timeout=120, interval=1.0), f"still running: {running()}"
     assert {p: p.read_bytes() for p in other.rglob("*") if p.is_file()} == before

@@ -1,6 +1,7 @@
 """The SLURM job scripts on a real (one-node) cluster: ``team.sbatch`` runs one task per service
-and ends COMPLETED with a whole run directory; a killed learner task ends it FAILED within a
-minute, naming the learner; ``swarmmap-up.sbatch`` runs ``swarmmap up`` as one task."""
+and ends COMPLETED with a whole run directory, and a second job on that run directory is
+refused; a killed learner task ends it FAILED within a minute, naming the learner;
+``swarmmap-up.sbatch`` runs ``swarmmap up`` as one task."""
 
 from __future__ import annotations
 
@@ -64,6 +65,14 @@ def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path)
     # Each service's key in a folder of its own (the router's certificate names the job's node); no CA key.
     keys = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*") if p.is_file() and b"PRIVATE KEY" in p.read_bytes())
     assert keys == sorted(f"secrets/{name}@slurm-{job}/key.pem" for name in identities(3)), keys
+    # The same run directory again: refused, resumed or not, and nothing of the finished run changes.
+    kept = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    for extra in ((), ("--resume",)):
+        again, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", *extra)
+        out = job_output(tmp_path, again)
+        assert job_state(again) == "FAILED" and f"{run_dir} holds a finished run (it ended " in out, out
+        assert "never overwritten" in out and "SWARMMAP_RUN_DIR" in out, out
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == kept
 
 
 def learner_pid(run_dir: Path, robot: int) -> int | None:

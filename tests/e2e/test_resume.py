@@ -1,5 +1,7 @@
-"""Checkpoints: a team restarted on a run directory resumes from its checkpoints and ends
-exactly where the uninterrupted run ended; nothing already written is lost."""
+"""Checkpoints: a team started again on the run directory of a crashed run (``--resume``)
+resumes from its checkpoints and ends exactly where the uninterrupted run ended; nothing already
+written is lost, and no metrics row is written twice. (Runs interrupted for real, and the
+run-directory rules: tests/e2e/test_rundirs.py.)"""
 
 from __future__ import annotations
 
@@ -30,12 +32,16 @@ def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path, model):
     assert sorted(p.name for p in (a / "checkpoints").iterdir()) == [
         "robot-0-data.pt", "robot-0.pt", "robot-1-data.pt", "robot-1.pt", "robot-2-data.pt", "robot-2.pt"]
     assert torch.load(a / "checkpoints" / "robot-0.pt", weights_only=True)["round"] == 10
-    # B: the run directory as a crash after round 10 would leave it.
+    # B: the run directory as a crash of every process after round 15 would leave it: checkpoints of
+    # round 10, metrics up to round 15, no models and no summary.
     shutil.copytree(a, b)
     shutil.rmtree(b / "models")
+    (b / "summary.json").unlink()
+    rows = (b / "metrics.csv").read_text().splitlines(keepends=True)
+    (b / "metrics.csv").write_text("".join([rows[0]] + [r for r in rows[1:] if int(r.split(",")[1]) <= 15]))
     (b / "checkpoints" / ".robot-1.pt.x1y2.tmp").write_bytes(b"half a checkpoint")  # a learner killed while writing
     before = list(csv.DictReader((b / "metrics.csv").open()))
-    up(b, "--set", f"learner.model={model}")
+    up(b, "--set", f"learner.model={model}", "--resume")
     for robot in range(3):
         log = (b / "logs" / f"learner-{robot}.log").read_text()
         assert "resuming from" in log and "at round 10" in log
@@ -45,6 +51,9 @@ def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path, model):
             torch.testing.assert_close(sa[name], sb[name], rtol=0, atol=1e-6)
     after = list(csv.DictReader((b / "metrics.csv").open()))
     assert after[: len(before)] == before and len(after) > len(before)
+    keys = [(r["robot"], r["round"], r["final"]) for r in after]
+    assert len(keys) == len(set(keys)), "rows written twice after the resume"
+    assert sorted(keys) == sorted((r["robot"], r["round"], r["final"]) for r in csv.DictReader((a / "metrics.csv").open()))
     assert not list((b / "checkpoints").glob("*.tmp")), "a leftover .tmp was kept"
     # The first row after the resume is the resumed model's, not an untrained one's.
     resumed = [r for r in after[len(before):] if r["robot"] == "0"][0]
@@ -56,19 +65,19 @@ def test_unreadable_checkpoint_is_named(tmp_path):
     run = tmp_path / "c"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "robot-1.pt").write_bytes(b"not a checkpoint")
-    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "5",
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "5", "--resume",
                            "--run-dir", str(run)], capture_output=True, text=True, timeout=600, env=clean_env())
     assert proc.returncode == 1
     assert "cannot read checkpoint" in (run / "logs" / "learner-1.log").read_text()
 
 
-def test_checkpoints_of_other_settings_are_refused_and_nothing_is_overwritten(tmp_path):
+def test_a_run_of_other_settings_is_refused_and_nothing_is_overwritten(tmp_path):
     run = tmp_path / "run"
-    up(run)
-    kept = {p: p.read_bytes() for p in (run / "models" / "robot-0.pt", run / "config.yaml", run / "summary.json")}
-    # up refuses at once: nothing of the finished run is touched.
-    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--rounds", "20", "--seed", "7",
-                           "--set", "learner.checkpoint_every=10", "--run-dir", str(run)],
-                          capture_output=True, text=True, timeout=600, env=clean_env())
+    prepared = subprocess.run([*SWARMMAP, "prepare", "--preset", "smoke", "--run-dir", str(run)], capture_output=True, text=True,
+                              timeout=120, env=clean_env())
+    assert prepared.returncode == 0, prepared.stderr
+    kept = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    proc = subprocess.run([*SWARMMAP, "up", "--preset", "smoke", "--seed", "7", "--resume", "--run-dir", str(run)],
+                          capture_output=True, text=True, timeout=120, env=clean_env())
     assert proc.returncode == 2 and "holds a run with other settings (seed 0 there, 7 here)" in proc.stderr
-    assert all(p.read_bytes() == data for p, data in kept.items()), "the finished run's files were overwritten"
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == kept, "the run's files were changed"

@@ -1,8 +1,9 @@
 """Robot ids claimed by look-alike containers (services/claim.py) and compose's start of a run:
 replicas that claim at once get distinct ids, a holder gets its own id back, one too many is
-refused with a message naming the setting; a finished run with other settings is kept aside
-whole, an unfinished one is refused without a byte of it changed; the run's signer issues each
-identity to one key, writes no private key and its certificates carry a secure run."""
+refused with a message naming the setting; a finished run is refused, an unfinished one is
+resumed only when asked (SWARMMAP_UP__RESUME) and with its own settings, and a refused start
+changes not a byte of the run directory; the run's signer issues each identity to one key,
+writes no private key and its certificates carry a secure run."""
 
 from __future__ import annotations
 
@@ -85,30 +86,42 @@ def test_start_writes_config_and_credentials_forgets_claims_and_says_ok(tmp_path
     assert "robots: 3" in (run_dir / "config.yaml").read_text()
     assert {"learner-2@compose", "lidar-2@compose", "router-0@compose"} <= {p.name for p in (run_dir / "secrets").iterdir()}
     assert not list(shared.glob("*.json")) and (shared / "start").read_text() == "ok\n"
-    assert start(compose_env(run_dir, 3)) == 0  # the same run again: it resumes
+    assert start(compose_env(run_dir, 3) | {"SWARMMAP_UP__RESUME": "true"}) == 0  # the same run again, resumed
+
+
+def test_start_resumes_an_unfinished_run_only_when_asked(tmp_path, capsys):
+    run_dir, shared = tmp_path / "compose", tmp_path / "shared"
+    assert start(compose_env(run_dir, 3)) == 0
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    assert start(compose_env(run_dir, 3)) == 2
+    err = capsys.readouterr().err
+    assert f"{run_dir} holds a run that did not finish" in err and "SWARMMAP_UP__RESUME=true" in err and "SWARMMAP_RUN_ID" in err
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    assert "SWARMMAP_UP__RESUME=true" in (shared / "start").read_text()
 
 
 def test_start_refuses_a_run_directory_holding_another_run_and_changes_nothing(tmp_path, capsys):
     run_dir, shared = tmp_path / "compose", tmp_path / "shared"
     assert start(compose_env(run_dir, 3)) == 0
     before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
-    assert start(compose_env(run_dir, 5)) == 2
+    assert start(compose_env(run_dir, 5) | {"SWARMMAP_UP__RESUME": "true"}) == 2
     err = capsys.readouterr().err
     assert "robots 3 there, 5 here" in err and "SWARMMAP_RUN_ID" in err
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
     assert "robots 3 there, 5 here" in (shared / "start").read_text()  # what the run's other containers say
 
 
-def test_start_keeps_a_finished_run_with_other_settings_aside_and_starts_afresh(tmp_path):
+def test_start_refuses_a_finished_run_resumed_or_not_and_changes_nothing(tmp_path, capsys):
     run_dir = tmp_path / "compose"
     assert start(compose_env(run_dir, 3)) == 0
-    (run_dir / "summary.json").write_text('{"ok": true}\n')  # what the recorder writes when the run is over
+    (run_dir / "summary.json").write_text('{"ok": true}\n')  # what the recorder writes when every learner finished
     before = {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
-    assert start(compose_env(run_dir, 5)) == 0
-    (kept,) = [p for p in tmp_path.iterdir() if p.name.startswith("compose-")]
-    assert {p.relative_to(kept): p.read_bytes() for p in kept.rglob("*") if p.is_file()} == before
-    assert "robots: 5" in (run_dir / "config.yaml").read_text() and not (run_dir / "summary.json").exists()
-    assert (tmp_path / "shared" / "start").read_text() == "ok\n"
+    for env in ({}, {"SWARMMAP_UP__RESUME": "true"}):
+        assert start(compose_env(run_dir, 3) | env) == 2
+        err = capsys.readouterr().err
+        assert f"{run_dir} holds a finished run, which is never overwritten" in err and "SWARMMAP_RUN_ID" in err
+    assert {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["compose", "shared"]  # nothing moved aside either
 
 
 def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):

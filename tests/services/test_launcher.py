@@ -99,3 +99,40 @@ def test_the_reason_is_the_services_last_error_without_time_stamps():
     assert last_error(refused) == "config error: zenoh.secrets: learner-0 has no credentials in s create them with swarmmap secrets"
     crash = ["Traceback (most recent call last):", '  File "x.py", line 1, in <module>', "ValueError: bad value", ""]
     assert last_error(crash) == "ValueError: bad value"
+
+
+def test_a_run_directory_is_never_overwritten_and_resumed_only_when_asked(tmp_path):
+    """A finished run is refused, resumed or not; one that did not finish is refused without
+    ``--resume`` (naming it) and with other settings; a new directory takes any run."""
+    from swarmmap.services.launcher import prepare, run_dir_problem, write_config
+    from swarmmap.shared.config import resolve
+    from tests.conftest import recorded_run
+
+    def cfg(run_dir, **cli):
+        return prepare(resolve({"run_dir": str(run_dir), "zenoh": {"insecure": True}, **cli}, preset="smoke", environ={}))
+
+    assert run_dir_problem(cfg(tmp_path / "new")) is None and run_dir_problem(cfg(tmp_path / "new", up={"resume": True})) is None
+    done = recorded_run(tmp_path / "done")
+    for resume in (False, True):
+        why = run_dir_problem(cfg(done, up={"resume": resume}))
+        assert why.startswith(f"{done} holds a finished run (it ended ") and "never overwritten; choose another --run-dir" in why
+    stopped = tmp_path / "stopped"
+    write_config(cfg(stopped, run_id="first"))  # what prepare leaves, or a run stopped before its summary
+    why = run_dir_problem(cfg(stopped))
+    assert why == (f"{stopped} holds a run that did not finish (no summary: it is still running, or it stopped without one); "
+                   f"resume it with --resume, or choose another --run-dir")
+    assert run_dir_problem(cfg(stopped, up={"resume": True})) is None
+    assert "(seed 0 there, 3 here)" in run_dir_problem(cfg(stopped, seed=3, up={"resume": True}))
+    assert cfg(stopped, up={"resume": True}).run_id == "first", "a resumed run keeps its run id"
+    (stopped / "summary.json").write_text(json.dumps({"ok": False, "status": 130}))
+    assert "(it was interrupted)" in run_dir_problem(cfg(stopped))
+
+
+def test_resume_names_the_run_it_resumes():
+    import pytest
+
+    from swarmmap.services.launcher import prepare
+    from swarmmap.shared.config import ConfigError, resolve
+
+    with pytest.raises(ConfigError, match="up.resume: name the run to resume: --run-dir RUN_DIR"):
+        prepare(resolve({"up": {"resume": True}}, preset="smoke", environ={}))

@@ -110,3 +110,22 @@ def test_the_web_viewer_and_its_grpc_server_listen_on_loopback_unless_told_other
             proc.wait(30)
     warned = [r.getMessage() for r in caplog.records if "listen beyond loopback" in r.getMessage()]
     assert bool(warned) == (bind is not None), warned
+
+
+def test_a_trajectory_is_logged_in_pieces_that_stay_bounded():
+    """Each scan logs at most one piece of ``piece`` points, so the recording grows with the path
+    (10,000 poses: at most 1 M points logged, where the whole path at every scan was 50 M); the
+    pieces together are the path, and a robot that stands still adds nothing."""
+    from swarmmap.services.observer import Trajectory
+
+    path, logged, pieces = Trajectory(min_step=0.05, piece=100), 0, []
+    for k in range(10_000):
+        changed, finished = path.add(0.1 * k, 0.0)
+        assert changed and len(path.points) <= 100
+        logged += len(path.points)
+        if finished is not None:
+            pieces.append(finished)
+    assert logged <= 10_000 * 100 and path.done == len(pieces) == 100
+    drawn = [p for piece in pieces for p in piece[:-1]] + path.points
+    assert [x for x, _ in drawn] == [0.1 * k for k in range(10_000)]
+    assert path.add(999.9 + 0.01, 0.0) == (False, None)

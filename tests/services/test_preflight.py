@@ -103,3 +103,12 @@ def test_prepare_refuses_an_endpoint_and_writes_no_config(tmp_path):
                           cwd=tmp_path)
     assert proc.returncode == 2 and took < PROMPT_S and "zenoh.connect: 'router:7447'" in proc.stderr
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", [("up",), ("prepare",), ("recorder", "--zenoh-insecure")])
+def test_a_read_only_run_directory_is_refused_at_start_naming_it(tmpfs, tmp_path, command):
+    """Root too: a read-only disk is found by writing, not by asking for permissions."""
+    ro = tmpfs("1m", read_only=True)
+    proc, took = swarmmap(*command, "--preset", "smoke", "--run-dir", str(ro / "run"), cwd=tmp_path)
+    assert proc.returncode == 2 and took < PROMPT_S, proc.stderr[-2000:]
+    assert f"run_dir: {ro} cannot be written (Read-only file system)" in proc.stderr and "Traceback" not in proc.stderr

@@ -80,17 +80,78 @@ def test_tokens_never_seen_and_foreign_ids_are_ignored():
     assert t.outcome() is None and t.learners_missing() == [0, 1]
 
 
-def test_metrics_file_is_appended_on_resume(tmp_path):
+def test_a_resumed_metrics_file_goes_on_after_its_rows_and_writes_none_twice(tmp_path):
+    """A learner that resumes from its checkpoint reports rounds the file holds already: they are
+    not written again, the first rows stay the first, and a half-written last row is cut off."""
     path = tmp_path / "metrics.csv"
     rec = MetricsRecorder(path)
-    rec.add(metrics(0, 0))
+    for k in (0, 5, 10):
+        rec.add(metrics(0, k))
     rec.close()
+    with path.open("a") as f:
+        f.write("0,15,3.0,0.4")  # a recorder killed while writing this row
     rec = MetricsRecorder(path)
-    rec.add(metrics(0, 5, final=True))
+    assert rec.first[0].round == 0 and rec.latest[0].round == 10
+    written = [rec.add(metrics(0, k)) for k in (5, 10, 15, 20)] + [rec.add(metrics(0, 20, final=True))]
     rec.close()
+    assert written == [False, False, True, True, True]
     rows = list(csv.DictReader(path.open()))
-    assert [(r["round"], r["final"]) for r in rows] == [("0", "0"), ("5", "1")]
-    assert rec.first[0].round == 5 and rec.final[0].round == 5
+    assert [(r["round"], r["final"]) for r in rows] == [("0", "0"), ("5", "0"), ("10", "0"), ("15", "0"), ("20", "0"), ("20", "1")]
+    assert rec.first[0].round == 0 and rec.final[0].round == 20
+
+
+def test_the_summary_of_a_resumed_run_keeps_its_start_and_adds_up_the_wall_time(tmp_path):
+    from swarmmap.services.recorder import summary
+    from swarmmap.shared.config import resolve
+
+    cfg = resolve({"robots": 1}, environ={})
+    rec = MetricsRecorder(tmp_path / "metrics.csv")
+    rec.add(Metrics(run="r", sender=0, round=0, wall_time_s=1.0, val_bce=0.7, consensus_error=0, bytes_sent=1, bytes_received=1))
+    rec.close()
+    first = summary(cfg, rec, False, "interrupted", 17.5, started=1000.0)
+    rec = MetricsRecorder(tmp_path / "metrics.csv")
+    rec.add(Metrics(run="r", sender=0, round=0, wall_time_s=0.5, val_bce=0.2, consensus_error=0, bytes_sent=1, bytes_received=1))
+    again = summary(cfg, rec, True, "all 1 learners finished", 11.5, started=2000.0, earlier=first)
+    assert again["learners"]["0"]["first_val_bce"] == 0.7, "the first attempt's first val_bce was lost"
+    assert again["started"] == 1000.0 and again["wall_time_s"] == 29.0 and again["earlier_wall_time_s"] == 17.5
+    assert again["attempts"] == 2
+
+
+def test_a_stall_names_the_learners_that_reported_nothing_then_the_lowest():
+    from swarmmap.services.recorder import StallWatch
+
+    w = StallWatch(3, timeout=10, now=0)
+    assert w.stalled(now=9) is None
+    for t in (5, 12):
+        w.on_scan(now=t)
+    why = w.stalled(now=22.5)
+    assert "no progress" in why and "10 s" in why and "[0, 1, 2] reported no round after the 2 scans" in why
+    w.on_metrics(metrics(0, 40), now=23)
+    w.on_metrics(metrics(2, 60), now=24)
+    assert w.stalled(now=33) is None
+    assert w.held_up_by() == [1] and "learner(s) [1] reported no round" in w.stalled(now=34.5)
+    w.on_metrics(metrics(1, 60), now=35)
+    assert w.held_up_by() == [0] and "learner(s) [0] are at round 40, the lowest (the team's newest is 60)" in w.stalled(now=45)
+    w.on_metrics(metrics(0, 60, final=True), now=46)
+    assert w.held_up_by() == [1, 2]  # the one that finished holds nothing up
+
+
+def test_the_recorder_refuses_a_finished_run_and_a_run_directory_it_cannot_write(tmp_path, capsys):
+    import pytest
+
+    from swarmmap.services.recorder import refuse_run_dir
+    from tests.conftest import recorded_run
+
+    finished = recorded_run(tmp_path / "done")
+    with pytest.raises(SystemExit) as info:
+        refuse_run_dir(finished)
+    assert info.value.code == 2 and "holds a finished run" in capsys.readouterr().err
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit):
+        refuse_run_dir(blocker / "run")
+    assert "is a file" in capsys.readouterr().err
+    refuse_run_dir(tmp_path / "new")  # a new one is fine
 
 
 def test_an_overview_that_cannot_be_drawn_is_logged_and_never_fails_the_run(tmp_path, caplog):

@@ -1,0 +1,27 @@
+"""The training points a learner keeps: offline every scan's until the traversal ends, online only
+the window's newest scans (memory bounded by the window, not by the traversal)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from swarmmap.services.learner.collector import Collector
+from swarmmap.shared.protocol import Samples, Tensor
+
+
+def samples(seq: int, last: bool = False) -> Samples:
+    points = np.full((10, 2), seq, np.float32)
+    return Samples(run="r", sender=0, seq=seq, t=0.1 * seq, position=[0.0, 0.0], points=Tensor.of(points, "<f4"),
+                   labels=Tensor.of(np.zeros(10, np.float32), "<f4"), last=last)
+
+
+def test_online_keeps_only_the_window_and_offline_every_scan():
+    online, offline = Collector(keep=50), Collector()
+    for seq in range(1000):
+        online.add(samples(seq))
+        offline.add(samples(seq))
+    assert len(online.points) == 50 and len(offline.points) == 1000
+    points, labels = online.arrays(50)
+    assert points.shape == (500, 2) and points[0, 0] == 950 and points[-1, 0] == 999
+    assert online.arrays(5)[0][0, 0] == 995
+    assert offline.arrays()[0].shape == (10_000, 2)
