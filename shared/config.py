@@ -446,6 +446,9 @@ class RunConfig(Section):
             raise ValueError(f"faults.attackers {f.attackers}: robots are 0..{self.robots - 1}")
         if f.attack == "sigma" and f.attackers and self.learner.model != "bnn":
             raise ValueError("faults.attack sigma lies about a Bayesian network's rho: it needs learner.model bnn")
+        if f.attack == "equivocate" and f.attackers and self.learner.compression not in ("none", "f16", "bf16"):
+            raise ValueError("faults.attack equivocate sends two States a round: a compressed chain carries one (learner.compression "
+                             "none, f16 or bf16)")
         return self
 
     @model_validator(mode="after")
@@ -489,7 +492,8 @@ class RunConfig(Section):
         return self.learner.eval_every
 
     def world_wait_s(self) -> float:
-        """How long a service waits for the world's map (it answers once the plan is built)."""
+        """How long a service waits for the world's map (it answers once the plan is built): the
+        learners' ``learner.collect_timeout_s``, the longest any service waits for the world."""
         return self.learner.collect_timeout_s
 
     def labelling(self) -> Labelling:

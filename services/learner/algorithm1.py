@@ -48,22 +48,24 @@ from swarmmap.services.learner.exchange import (
     StateCheck,
     refuse,
 )
-from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer, corroborated
+from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
 
 
 class Algorithm1:
-    """One node's rounds. ``update(round, state, {peer: state})`` is its NODEUPDATE, given exactly the
-    round's States of the neighbours it has; ``check(theirs, own)`` refuses a State on its own (why),
-    ``screen(own, {peer: state})`` the round's together; ``rejoin`` gives the State a jump starts from."""
+    """One node's rounds. ``update(round, state, {peer: state})`` is its NODEUPDATE; ``check(theirs,
+    own)`` refuses a State on its own (``check_stale`` when its own parameters are rounds old),
+    ``screen(own, {peer: state})`` the round's together; ``rejoin`` gives a jump's start."""
 
     def __init__(self, node_id: int, neighbours: set[int], update: NodeUpdate, transport: Transport,
                  rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None, screen: RoundCheck | None = None,
-                 rejoin: Rejoin | None = None, stats: ExchangeStats | None = None, stop: threading.Event | None = None):
+                 check_stale: StateCheck | None = None, rejoin: Rejoin | None = None, stats: ExchangeStats | None = None,
+                 stop: threading.Event | None = None):
         self.node_id, self.neighbours, self.update, self.transport, self.rules = node_id, set(neighbours), update, transport, rules
         self.check, self.screen, self.rejoin, self.stop = check, screen, rejoin, stop
+        self.check_stale = check_stale if check_stale is not None else check
         self.stats = stats if stats is not None else ExchangeStats()
         self.begin(np.zeros(0, np.float32), 0, 0, False)
 
@@ -91,10 +93,7 @@ class Algorithm1:
         if self.updated or not (ready or self.wait_over()):
             return False
         busy_since = time.monotonic()
-        used = self.late.fill({j: peers[j] for j in active & peers.keys()}, active, self.rnd)
-        self.stats.missed += len(active) - len(used)
-        used = self.members.screened(self.screen, self.state, used, {j: peers[j] for j in self.members.suspects & peers.keys()},
-                                     self.rnd)
+        used = self.members.round_states(self.screen, self.state, peers, self.late, self.rnd)
         self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
         self.members.paused(time.monotonic() - busy_since)
         self.updated = True
@@ -130,12 +129,13 @@ class Algorithm1:
             return
         if msg.kind == "state" and self.buf.held(msg.sender, msg.round) is not None:  # the first State of a round counts
             self.members.heard_from(msg.sender, now)
-            if self.members.judge(msg, self.check, self.state):  # a second, different and plausible one: a liar
+            if msg.exact and self.members.judge(msg, self.check, self.state):  # a second, different, plausible one: a liar
                 self.members.equivocates(msg, self.buf, self.late, self.rnd)
             return
         newest = self.replay.seen(msg.sender, msg.round) if msg.kind == "state" else False
         if self.rules.round_wait > 0 and not self.joining and not self.rnd <= msg.round <= self.rnd + ROUNDS_AHEAD:
-            self.members.heard_from(msg.sender, now)
+            if msg.kind == "state":  # (a RoundComplete is no word without its State)
+                self.members.heard_from(msg.sender, now)
             self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state))
         elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
             if newest:
@@ -159,18 +159,18 @@ class Algorithm1:
         j, r = msg.sender, msg.round
         self.members.heard_from(j, now)
         keep = self.rules.keep_rounds
-        # Left behind: stuck in this round for longer than the neighbours wait for anyone, while
-        # they are further ahead than they can replay. They left this node out (it was slow to
-        # start, or starved of CPU): catch up with them rather than wait for rounds nobody will send.
+        # Left behind (slow to start, starved of CPU): stuck here longer than the neighbours wait for
+        # anyone while they are further ahead than they can replay: catch up rather than wait.
         left_behind = (now - self.round_started > self.rules.silent_after
                        and self.rnd + max(keep, ROUNDS_AHEAD) < r <= self.rounds)
-        jump = ((self.joining and not self.updated and self.rnd + keep < r <= self.rounds) or left_behind) and corroborated(
-            self.replay.newest, self.neighbours - self.members.banned, r)
+        jump = ((self.joining and not self.updated and self.rnd + keep < r <= self.rounds) or left_behind
+                ) and self.members.vouched(self.replay.newest, r)
         if r > self.rnd + ROUNDS_AHEAD and not jump:
             if not (self.joining and r <= self.rnd + keep):  # (those are the replay's, coming)
                 refuse(self.stats, self.node_id, msg, f"round {r} while this node is at round {self.rnd}", "far-future")
             return
-        if not self.members.judge(msg, self.check, self.state):  # (own parameters a few rounds old when catching up)
+        stale = (self.joining and not self.updated) or left_behind  # own parameters rounds old: judged more loosely
+        if not self.members.judge(msg, self.check_stale if stale else self.check, self.state):
             return
         if jump:
             self.catch_up(msg, now, left_behind)
@@ -245,7 +245,6 @@ class RoundLoop:
         m = self.m
         lost = m.transport.lost_peers()
         m.replay.forget(lost)
-        m.buf.forget(lost)
         m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now)
         if now - self.last_progress > m.rules.resend_after:
             m.send_state()
@@ -273,6 +272,7 @@ class RoundLoop:
         final = m.buf.states[m.rounds]
         while not m.members.active <= final.keys() and time.monotonic() < deadline:
             msg = m.transport.receive(timeout=max(0.0, min(0.2, deadline - time.monotonic())))
-            if msg is not None and msg.kind == "state" and msg.sender in m.neighbours and msg.round == m.rounds:
+            if (msg is not None and msg.kind == "state" and msg.sender in m.neighbours - m.members.banned
+                    and msg.round == m.rounds and msg.sender not in final and m.members.judge(msg, m.check, m.state)):
                 final[msg.sender] = msg.params
         return dict(final)

@@ -80,6 +80,7 @@ class HostileTransport:
     def __init__(self, inner: Transport, node: int, attack: str, layout: StateLayout, seed: int):
         self.inner, self.node, self.attack = inner, node, attack
         self.liar = Liar(attack, layout, seed)
+        self.lies: dict[int, np.ndarray] = {}  # one lie a round: a resend says the same again
         log.warning("node %d: HOSTILE: it attacks its neighbours (%s): faults.attackers lists it", node, attack)
 
     new_state = staticmethod(plain_vector)  # the honest State stays with the node; the lie is another vector
@@ -89,7 +90,10 @@ class HostileTransport:
             return
         if self.attack == "equivocate":
             self.inner.send_state(round, params)
-        self.inner.send_state(round, self.liar.lie(params) if self.attack != "none" else params)
+        if round not in self.lies:
+            self.lies = {r: v for r, v in self.lies.items() if r > round - 8}
+            self.lies[round] = self.liar.lie(params)
+        self.inner.send_state(round, self.lies[round])
 
     def send_round_complete(self, round: int) -> None:
         self.inner.send_round_complete(round)

@@ -29,7 +29,6 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, NodeUpdate, StateCheck, refuse
-from swarmmap.services.learner.membership import differs
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
@@ -41,10 +40,11 @@ class ClockExchange:
 
     def __init__(self, node_id: int, neighbours: set[int], update: NodeUpdate, transport: Transport, every_s: float,
                  rules: ExchangeRules = ExchangeRules(), *, check: StateCheck | None = None,
-                 forget: Callable[[int], None] | None = None, stats: ExchangeStats | None = None,
-                 stop: threading.Event | None = None):
+                 check_stale: StateCheck | None = None, forget: Callable[[int], None] | None = None,
+                 stats: ExchangeStats | None = None, stop: threading.Event | None = None):
         self.node_id, self.neighbours, self.update, self.transport = node_id, set(neighbours), update, transport
         self.every_s, self.rules, self.check, self.forget, self.stop = every_s, rules, check, forget, stop
+        self.check_stale = check_stale if check_stale is not None else check
         self.stats = stats if stats is not None else ExchangeStats()
         self.newest: dict[int, tuple[int, np.ndarray]] = {}  # each neighbour's newest State taken: (round, vector)
         self.heard: dict[int, float] = {}
@@ -80,8 +80,13 @@ class ClockExchange:
             msg = self.transport.receive(timeout=0.0)
             if msg is None:
                 break
-            if msg.sender not in arrived or msg.round >= arrived[msg.sender].round:
+            was = arrived.get(msg.sender)
+            if was is not None and self.equivocates(was, msg):
+                continue
+            if was is None or msg.round >= was.round:
                 arrived[msg.sender] = msg
+        for j in self.banned & arrived.keys():
+            del arrived[j]
         fresh: dict[int, np.ndarray] = {}
         for msg in arrived.values():
             self.take(msg, fresh, time.monotonic())
@@ -93,16 +98,6 @@ class ClockExchange:
         j = msg.sender
         if msg.kind != "state" or j not in self.neighbours or j in self.banned or msg.round < self.newest.get(j, (-1, None))[0]:
             return  # RoundCompletes (a node on round-based exchange), strangers, reordered older States
-        if self.newest.get(j, (-1, None))[0] == msg.round and differs(self.newest[j][1], msg.params):
-            self.banned.add(j)
-            self.forgotten.discard(j)
-            self.newest.pop(j, None)
-            self.stats.refused["equivocation"] += 1
-            log.warning("node %d: neighbour %d sent two different States for its round %d; it is left out for the rest "
-                        "of the run", self.node_id, j, msg.round)
-            if self.forget is not None:
-                self.forget(j)
-            return
         why = self.judge(j, msg.params)
         if why is not None:
             refuse(self.stats, self.node_id, msg, why, "implausible")  # (why, against its own parameters)
@@ -115,15 +110,36 @@ class ClockExchange:
         self.heard[j] = now
         into[j] = msg.params
 
+    def equivocates(self, was: Envelope, msg: Envelope) -> bool:
+        """Whether ``msg`` is a second, plausible and different State of the same sender and round
+        as ``was`` (both arrived since the last round): the sender is then banned for the run."""
+        j = msg.sender
+        if (msg.kind != "state" or was.kind != "state" or was.round != msg.round or not (msg.exact and was.exact)
+                or np.array_equal(was.params, msg.params) or self.judge(j, msg.params) is not None):
+            return False
+        self.banned.add(j)
+        self.forgotten.discard(j)
+        self.heard.pop(j, None)
+        self.newest.pop(j, None)
+        self.stats.refused["equivocation"] += 1
+        log.warning("node %d: neighbour %d sent two different States for its round %d; it is left out for the rest of "
+                    "the run", self.node_id, j, msg.round)
+        if self.forget is not None:
+            self.forget(j)
+        return True
+
     def judge(self, j: int, theirs: np.ndarray) -> str | None:
         """Why ``theirs`` (from ``j``) is refused against every reference (this node's parameters
-        and the other neighbours' newest), or None when one of them finds it plausible."""
+        and the other neighbours' newest), or None when one of them finds it plausible. Before
+        the node has taken any State (it starts, or resumed behind its team), against its own
+        parameters more loosely (``check_stale``)."""
         if self.check is None:
             return None
-        refs = [self.state, *(v for k, (_, v) in self.newest.items() if k != j)]
+        others = [v for k, (_, v) in self.newest.items() if k != j]
+        refs = [(self.check, self.state)] + [(self.check, v) for v in others] if self.newest else [(self.check_stale, self.state)]
         first = None
-        for ref in refs:
-            why = self.check(theirs, ref)
+        for check, ref in refs:
+            why = check(theirs, ref)
             if why is None:
                 return None
             first = first or why
@@ -142,7 +158,7 @@ class ClockExchange:
     def linger(self, rounds: int) -> None:
         """Wait up to ``linger`` seconds for the neighbours' final States."""
         deadline = time.monotonic() + self.rules.linger
-        while (any(self.newest.get(j, (-1, None))[0] < rounds for j in self.neighbours - self.forgotten)
+        while (any(self.newest.get(j, (-1, None))[0] < rounds for j in self.neighbours - self.forgotten - self.banned)
                and time.monotonic() < deadline):
             msg = self.transport.receive(timeout=max(0.0, min(0.2, deadline - time.monotonic())))
             if msg is not None:

@@ -128,7 +128,8 @@ class StateCodec:
         params = None if msg.state is None else self.vector(msg)
         if msg.state is not None and params is None:
             return None
-        return Envelope(msg.kind, msg.sender, msg.round // self.every, params)
+        exact = msg.state is None or msg.state.seq is None  # (a chain's vector depends on what came before it)
+        return Envelope(msg.kind, msg.sender, msg.round // self.every, params, exact)
 
     def vector(self, msg: Delivery) -> np.ndarray | None:
         """A received State's vector: a plain one's as a read-only view of its payload (no copy),

@@ -30,51 +30,26 @@ from swarmmap.services.learner.transport import Envelope, Transport
 log = logging.getLogger("learner")
 
 
-EQUIVOCATION_TOL = 1e-2  # two States of one round farther apart than this share of the norm are two different words
-
-
-def differs(held: np.ndarray | None, theirs: np.ndarray) -> bool:
-    """Whether ``theirs`` says something else than the State ``held`` of the same sender and round
-    (an honest resend is the same; a re-encoded one, after a compressed chain restarted, within
-    EQUIVOCATION_TOL of it)."""
-    if held is None or held is theirs:
-        return False
-    if held.shape != theirs.shape:
-        return True
-    scale = max(float(np.linalg.norm(held)), 1e-12)
-    return float(np.linalg.norm(theirs.astype(np.float64) - held)) > EQUIVOCATION_TOL * scale
-
-
 @dataclass
 class RoundBuffer:
     """Messages buffered per round: an early State waits for its round, rounds never mix."""
 
     states: dict[int, dict[int, np.ndarray]] = field(default_factory=lambda: defaultdict(dict))
     complete: dict[int, set[int]] = field(default_factory=lambda: defaultdict(set))
-    finished: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)  # the last rounds' States, to catch equivocation
 
     def drop(self, rnd: int) -> None:
-        """Forget round ``rnd`` (finished), but for its States, kept for a couple of rounds."""
-        self.finished[rnd] = self.states.pop(rnd, {})
+        """Forget round ``rnd`` (finished)."""
+        self.states.pop(rnd, None)
         self.complete.pop(rnd, None)
-        for old in [r for r in self.finished if r < rnd - 1]:
-            del self.finished[old]
 
     def held(self, j: int, r: int) -> np.ndarray | None:
-        """``j``'s State of round ``r``, if this node holds one (buffered or of a round just finished)."""
-        got = self.states[r].get(j) if r in self.states else None
-        return got if got is not None else self.finished.get(r, {}).get(j)
+        """``j``'s State of round ``r``, if this node holds one."""
+        return self.states[r].get(j) if r in self.states else None
 
     def forget_sender(self, j: int) -> None:
         """Drop every State of ``j`` this node holds."""
-        for states in [*self.states.values(), *self.finished.values()]:
+        for states in self.states.values():
             states.pop(j, None)
-
-    def forget(self, gone: set[int]) -> None:
-        """Drop what neighbours that left said of finished rounds (a restarted node speaks anew)."""
-        for states in self.finished.values():
-            for j in gone:
-                states.pop(j, None)
 
     def keep_from(self, rnd: int) -> None:
         """Forget every round before ``rnd`` (a node that jumped ahead)."""
@@ -100,8 +75,7 @@ class Membership:
         self.returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
         now = time.monotonic()
         self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
-        self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node used
-        self.suspects: set[int] = set()  # left out for refused States: back only once a State of theirs passes the round's screen
+        self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
         self.banned: set[int] = set()  # said two different things for one round: never heard again
         self.lost_since: dict[int, float] = {}
         self.alone_since: float | None = None
@@ -114,42 +88,38 @@ class Membership:
         and when the neighbour's refused States began is kept (it is left out if they go on)."""
         why = check(msg.params, own) if check is not None else None
         if why is None:
+            self.refused_since.pop(msg.sender, None)
             return True
-        self.refused(msg, why, "implausible")
+        self.refused_since.setdefault(msg.sender, time.monotonic())
+        refuse(self.stats, self.node_id, msg, why, "implausible")
         return False
 
-    def refused(self, msg: Envelope, why: str, reason: str) -> None:
-        """A State of ``msg.sender`` refused (by its own checks, or the round's screen): counted, logged once."""
-        self.refused_since.setdefault(msg.sender, time.monotonic())
-        refuse(self.stats, self.node_id, msg, why, reason)
-
-    def screened(self, screen: RoundCheck | None, own: np.ndarray, used: dict[int, np.ndarray],
-                 suspects: dict[int, np.ndarray], rnd: int) -> dict[int, np.ndarray]:
-        """Round ``rnd``'s States judged together (``screen``, with the suspects' for company): the
-        outliers are refused; a suspect whose State passes comes back from the next round."""
-        refused = screen(own, used | suspects) if screen is not None else {}
+    def round_states(self, screen: RoundCheck | None, own: np.ndarray, peers: dict[int, np.ndarray], late: LateStates,
+                     rnd: int) -> dict[int, np.ndarray]:
+        """The States round ``rnd``'s update takes: the active neighbours' of the round, judged
+        together (``screen``: the outliers are refused for this round, counted; an honest node far
+        from the rest is refused only while it is), then, for the others, their late States
+        (poor links). Neighbours with neither are counted as missed."""
+        fresh = {j: peers[j] for j in self.active & peers.keys()}
+        refused = screen(own, fresh) if screen is not None and fresh else {}
         for j, why in refused.items():
-            self.refused(Envelope("state", j, rnd), why, "outlier")
-        for j in suspects.keys() - refused.keys():
-            self.cleared(j)
-        kept = {j: v for j, v in used.items() if j not in refused}
-        for j in kept:
-            self.used(j)
-        return kept
+            refuse(self.stats, self.node_id, Envelope("state", j, rnd), why, "outlier")
+        used = late.fill({j: v for j, v in fresh.items() if j not in refused}, self.active - refused.keys(), rnd)
+        self.stats.missed += len(self.active) - len(fresh.keys() | used.keys())
+        return used
 
     def equivocates(self, msg: Envelope, buf: RoundBuffer, late: LateStates, rnd: int) -> bool:
-        """Whether ``msg`` (a plausible State) says something else than the State of the same sender
-        and round this node holds: the sender is then banned and everything it said dropped."""
-        if msg.kind != "state" or not differs(buf.held(msg.sender, msg.round), msg.params):
+        """Whether ``msg`` (a plausible State of a round this node holds one of from the same
+        sender) says something else, in an encoding that repeats itself exactly (float32, half
+        precision): the sender is then banned and everything it said dropped. A compressed chain's
+        States are not compared (a resend after a replay re-encodes them)."""
+        held = buf.held(msg.sender, msg.round)
+        if msg.kind != "state" or not msg.exact or held is None or np.array_equal(held, msg.params):
             return False
         self.ban(msg.sender, f"sent two different States for round {msg.round}", rnd)
         buf.forget_sender(msg.sender)
         late.late.pop(msg.sender, None)
         return True
-
-    def used(self, j: int) -> None:
-        """A State of ``j`` went into an update: it is not only sending refused ones."""
-        self.refused_since.pop(j, None)
 
     def ban(self, j: int, why: str, rnd: int) -> None:
         """``j`` is hostile (it said two different things for one round): left out for good."""
@@ -158,7 +128,6 @@ class Membership:
         self.banned.add(j)
         self.active.discard(j)
         self.returning.discard(j)
-        self.suspects.discard(j)
         self.stats.refused["equivocation"] += 1
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
@@ -173,14 +142,14 @@ class Membership:
 
     def leave_out(self, j: int, why: str, rnd: int) -> None:
         self.active.discard(j)
+        self.refused_since.pop(j, None)
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", self.node_id, j, why, rnd)
 
     def came_back(self, j: int, rnd: int, now_round: bool) -> None:
         """Neighbour ``j``, left out, sent a State: of the round at hand before the update
-        (``now_round``: taken back at once) or of a later one (back from the next round). A
-        suspect comes back only through :meth:`cleared`."""
-        if j in self.suspects or j in self.banned:
+        (``now_round``: taken back at once) or of a later one (back from the next round)."""
+        if j in self.banned:
             return
         if now_round:
             self.active.add(j)
@@ -189,11 +158,10 @@ class Membership:
         else:
             self.returning.add(j)
 
-    def cleared(self, j: int) -> None:
-        """Suspect ``j``'s State passed the round's screen: back from the next round."""
-        self.suspects.discard(j)
-        self.refused_since.pop(j, None)
-        self.returning.add(j)
+    def vouched(self, newest: dict[int, int], r: int) -> bool:
+        """Whether enough of the neighbours still here (not banned, not gone) have sent States of
+        round ``r`` or later (``newest``) for this node to jump there (:func:`corroborated`)."""
+        return corroborated(newest, set(self.neighbours) - self.banned - self.lost_since.keys(), r)
 
     def next_round(self, rnd: int) -> None:
         """Round ``rnd`` begins: the neighbours returning are waited for again."""
@@ -207,23 +175,21 @@ class Membership:
         """The node caught up with neighbour ``j``'s round, where ``present`` sent their States
         too: they are waited for; the others come back once they reach it."""
         self.active = {j} | (self.active & present)
-        self.returning = set(self.neighbours) - self.active - self.banned - self.suspects
+        self.returning = set(self.neighbours) - self.active - self.banned
 
     def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
         refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``."""
         self.lost_since = {j: self.lost_since.get(j, now) for j in lost}
         r = self.rules
-        for j in sorted(self.active):  # it talks, but only in refused States
-            if now - self.refused_since.get(j, now) > r.silent_after:
-                self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
-                self.suspects.add(j)
         for j in sorted(needed & self.active):
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
             elif now - self.heard[j] > r.silent_after:
                 self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
+            elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
+                self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
         if self.neighbours and not self.active:
             self.alone_since = self.alone_since or now
             if now - self.alone_since > r.peer_timeout:

@@ -52,7 +52,8 @@ class RoundScreen:
     """``screen(own, {neighbour: State})``: the neighbours whose State of the round is an outlier, and why."""
 
     def __init__(self, layout: StateLayout, spread_factor: float = 4.0):
-        self.ids, self.names = block_ids(layout)
+        self.ids, self.names = block_ids(layout, copies=1)  # the parameters (a tracker or counts differ by data)
+        self.n = layout.param_count
         self.counts = np.bincount(self.ids, minlength=len(self.names)).astype(np.float64)
         self.factor = spread_factor
         self.spread: np.ndarray | None = None  # per block, the honest spread remembered from earlier rounds
@@ -64,9 +65,10 @@ class RoundScreen:
         return np.sqrt(np.bincount(self.ids, weights=diff * diff, minlength=len(self.names)) / self.counts)
 
     def __call__(self, own: np.ndarray, peers: dict[int, np.ndarray]) -> dict[int, str]:
-        if not peers or own.shape != self.ids.shape:
+        if not peers:
             return {}
-        dev = {j: self.deviations(own, v) for j, v in peers.items() if v.shape == own.shape}
+        own = own[: self.n]
+        dev = {j: self.deviations(own, v[: self.n]) for j, v in peers.items() if v.shape[0] >= self.n}
         scale = np.sqrt(np.bincount(self.ids, weights=own.astype(np.float64) ** 2, minlength=len(self.names)) / self.counts)
         floor = 1e-3 * scale + 1e-7  # identical States (round 0) have no spread: a floor, not zero
         if len(dev) >= MIN_NEIGHBOURS:
@@ -96,20 +98,25 @@ class PullBound:
 
     def __init__(self, layout: StateLayout, factor: float = 3.0, device: torch.device | str = "cpu", whole_state: bool = False):
         """Rows are the model's parameters, or (``whole_state``) whole States (DSGT's carry the tracker)."""
-        ids, self.names = block_ids(layout, copies=None if whole_state else 1)
-        self.ids = torch.from_numpy(ids).to(device)
+        end = layout.size if whole_state else layout.param_count
+        self.blocks = [[(at, n) for at, n in segs] for _, segs in layout.blocks() if segs[0][0] < end]
+        self.ids = torch.from_numpy(block_ids(layout, copies=None if whole_state else 1)[0]).to(device)
         self.factor = factor
+        self.clipped = 0  # (link, block) pulls or duals clipped so far
 
     def _scales(self, rows: torch.Tensor) -> torch.Tensor | None:
         """Per row and value, the factor that brings each of the row's blocks within the bound (None: all within)."""
         if len(rows) < MIN_NEIGHBOURS:
             return None
-        norms = torch.zeros(len(rows), len(self.names), dtype=rows.dtype, device=rows.device)
-        norms.index_add_(1, self.ids, torch.square(rows))
-        norms = norms.sqrt()
-        bound = self.factor * norms.median(dim=0).values
-        scale = torch.where(norms > bound, bound / norms.clamp(min=1e-30), torch.ones_like(norms))
-        return None if bool((scale == 1).all()) else scale[:, self.ids]
+        norms = torch.stack([torch.sqrt(sum(torch.square(rows[:, at : at + n]).sum(1) for at, n in segs)) for segs in self.blocks],
+                            dim=1)  # (block by block: the same sums on every device)
+        bound = self.factor * torch.quantile(norms, 0.5, dim=0)
+        over = norms > bound
+        if not bool(over.any()):
+            return None
+        self.clipped += int(over.sum())
+        scale = torch.where(over, bound / norms.clamp(min=1e-30), torch.ones_like(norms))
+        return scale[:, self.ids]
 
     def rows(self, th_i: torch.Tensor, thj: torch.Tensor) -> torch.Tensor:
         """The neighbours' parameters (one row each), each row's difference from ``th_i`` clipped."""

@@ -54,7 +54,7 @@ from swarmmap.services.learner.node import warm_up
 from swarmmap.services.learner.outputs import write_outputs
 from swarmmap.services.learner.registry import RuleChoice, make_node, node_inputs
 from swarmmap.services.learner.robust import RoundScreen
-from swarmmap.services.learner.screening import StateScreen
+from swarmmap.services.learner.screening import GROUP_FACTOR, StateScreen
 from swarmmap.services.learner.settings import ScheduleSettings, exchange_rules
 from swarmmap.services.learner.subrounds import SubRounds
 from swarmmap.services.learner.transport import Link, MemoryHub, Transport
@@ -232,14 +232,16 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
     s, node, rounds = learner.s, learner.node, learner.rounds
     start = node.state() if learner.start_state is None else learner.start_state
     rules, screen = exchange_rules(s), StateScreen(node.layout, s.max_state_distance)
-    round_screen = RoundScreen(node.layout, s.robust_spread_factor) if s.robust else None
+    stale = StateScreen(node.layout, GROUP_FACTOR * s.max_state_distance)  # against own parameters rounds old
+    # (on a dynamic disk graph two subteams that meet differ by what each learnt apart: bounds, not the screen)
+    round_screen = RoundScreen(node.layout, s.robust_spread_factor) if s.robust and not learner.cfg.graph().dynamic else None
     if s.exchange_every_s > 0:
         final = ClockExchange(learner.robot, learner.neighbours, rounds.clock_update, transport, s.exchange_every_s, rules,
-                              check=screen, forget=rounds.forget, stats=learner.stats, stop=stop
+                              check=screen, check_stale=stale, forget=rounds.forget, stats=learner.stats, stop=stop
                               ).run(start, s.rounds, learner.start_round)
     else:
         machine = Algorithm1(learner.robot, learner.neighbours, rounds.exchange_update, transport, rules, check=screen,
-                             screen=round_screen, rejoin=node.rejoin, stats=learner.stats, stop=stop)
+                             screen=round_screen, check_stale=stale, rejoin=node.rejoin, stats=learner.stats, stop=stop)
         final = RoundLoop(machine).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
     codec, stats = learner.codec, learner.stats
     if codec is not None and (stats.missed or codec.ignored or codec.unusable):

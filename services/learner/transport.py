@@ -38,12 +38,15 @@ Kind = Literal["state", "complete"]
 
 @dataclass(frozen=True)
 class Envelope:
-    """One Algorithm 1 message as a node takes it: a State's vector, or none for a RoundComplete."""
+    """One Algorithm 1 message as a node takes it: a State's vector, or none for a RoundComplete.
+    ``exact``: the vector is what the sender sent, and the same again when it sends it again (not a
+    compressed chain's, which a resend after a replay re-encodes)."""
 
     kind: Kind
     sender: int
     round: int
     params: np.ndarray | None = None
+    exact: bool = True
 
 
 @dataclass(frozen=True)

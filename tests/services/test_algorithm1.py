@@ -22,10 +22,10 @@ COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
 
 
 def run_algorithm1(node, neighbours, rounds, state, update, transport, *, start_round=0, resumed=False, stats=None,
-                   stop=None, check_state=None, rejoin=None, **rules):
+                   stop=None, check_state=None, check_stale=None, rejoin=None, **rules):
     """Algorithm 1 at one node as the learner composes it: the round machine driven by a RoundLoop."""
-    machine = Algorithm1(node, neighbours, update, transport, ExchangeRules(**rules), check=check_state, rejoin=rejoin,
-                         stats=stats, stop=stop)
+    machine = Algorithm1(node, neighbours, update, transport, ExchangeRules(**rules), check=check_state,
+                         check_stale=check_stale, rejoin=rejoin, stats=stats, stop=stop)
     return RoundLoop(machine).run(state, rounds, start_round, resumed)
 
 
@@ -465,6 +465,9 @@ def test_on_a_clock_states_near_the_team_pass_and_hostile_ones_are_refused():
 
 
 def test_on_a_clock_a_neighbour_that_says_two_things_for_one_round_is_left_out():
+    """Two different plausible States of one round, back to back: the sender is banned for the
+    run (neither is taken, nor anything it sends later); an honest neighbour's resend, the same
+    State again, is no lie."""
     hub = MemoryHub(COMPLETE3)
     own = 1 + 0.1 * np.arange(8)
     taken = []
@@ -473,16 +476,17 @@ def test_on_a_clock_a_neighbour_that_says_two_things_for_one_round_is_left_out()
         taken.extend((k, j) for j in fresh)
         if k == 0:
             hub.transport(1).send_state(3, own + 0.01)
-        if k == 1:
             hub.transport(1).send_state(3, own - 0.02)  # another State for its round 3
-        if k == 2:
+            hub.transport(2).send_state(3, own + 0.03)
+            hub.transport(2).send_state(3, own + 0.03)  # the same again
+        if k == 1:
             hub.transport(1).send_state(4, own)  # never heard again
         return theta
 
     stats = ExchangeStats()
     run_timed(0, {1, 2}, 4, own, update, hub.transport(0), 10.0, stats=stats, linger=0.0,
               check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
-    assert taken == [(1, 1)] and stats.refused["equivocation"] == 1
+    assert taken == [(1, 2)] and stats.refused["equivocation"] == 1, (taken, stats.refused)
 
 
 def test_the_inbox_bounds_what_one_neighbour_can_queue_and_never_holds_another_back():
@@ -591,3 +595,54 @@ def test_a_lone_state_from_far_ahead_does_not_take_a_resumed_node_to_the_end():
                        keep_rounds=4, resend_after=5.0, stop=stop, peer_timeout=20,
                        check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
     assert rounds_seen == [20] and stats.caught_up == 1 and stats.refused["far-future"] >= 1
+
+
+def test_a_resumed_node_far_behind_its_team_judges_their_states_loosely_and_jumps():
+    """Resumed at round 2 of 40, its parameters far from the team's (0.8 of their norm: beyond the
+    plain check's 0.5); two neighbours vouch for round 20 and it jumps there, judging their States
+    against its own parameters more loosely (check_stale). With one of its two neighbours gone,
+    the other's word is enough."""
+    own = np.linspace(1, 2, 8)
+    team = own + 0.8 * np.linalg.norm(own) / np.sqrt(8)
+    for gone in (False, True):
+        graph = {0: {1, 2}, 1: {0}, 2: {0}}
+        hub = MemoryHub(graph)
+        hub.queues[0].put(Envelope("state", 1, 20, team))
+        if gone:
+            hub.lost.add(2)
+        else:
+            hub.queues[0].put(Envelope("state", 2, 20, team + 0.01))
+        stats, seen = ExchangeStats(), []
+        stop = threading.Event()
+
+        def update(k, theta, peers):
+            seen.append(k)
+            stop.set()
+            return theta
+
+        def resend():  # the neighbours say their round again until heard (a lone word is not enough at first)
+            while not stop.wait(0.6):
+                hub.queues[0].put(Envelope("state", 1, 20, team))
+
+        threading.Thread(target=resend, daemon=True).start()
+        with pytest.raises(InterruptedError):
+            run_algorithm1(0, graph[0], 40, own, update, hub.transport(0), start_round=2, resumed=True, stats=stats,
+                           keep_rounds=4, resend_after=5.0, stop=stop, peer_timeout=20, rejoin_wait=0.0,
+                           check_state=lambda theirs, ref: implausible(theirs, ref, 0.5),
+                           check_stale=lambda theirs, ref: implausible(theirs, ref, 2.0))
+        assert seen == [20] and stats.caught_up == 1, (gone, seen, stats)
+
+
+def test_a_compressed_chains_second_word_for_a_round_is_no_lie():
+    """A State of a compressed chain sent again after a replay decodes differently: it is not
+    taken for equivocation (only States that repeat themselves exactly are compared)."""
+    graph = {0: {1}, 1: {0}}
+    hub = MemoryHub(graph)
+    own = np.linspace(1, 2, 8)
+    hub.queues[0].put(Envelope("state", 1, 0, own + 0.01, exact=False))
+    hub.queues[0].put(Envelope("state", 1, 0, own + 0.02, exact=False))  # the same round, re-encoded
+    hub.queues[0].put(Envelope("complete", 1, 0))
+    stats = ExchangeStats()
+    run_algorithm1(0, graph[0], 1, own, mixing_update(0), hub.transport(0), stats=stats, linger=0.1, peer_timeout=5,
+                   check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
+    assert stats.refused["equivocation"] == 0 and stats.rounds_done == 1

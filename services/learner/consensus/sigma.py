@@ -62,7 +62,10 @@ def sigma_targets(th_i: torch.Tensor, thj: torch.Tensor, mu_at: torch.Tensor, rh
         share[:, mu_at] = var_i / (both + widen)
         floor[(widen > 0).any(1)] = 0.0
     if max_weight is not None:  # both ends of a link clamp alike (s_ji = 1 - s_ij): its two duals still cancel
-        share[:, mu_at] = share[:, mu_at].clamp(min=1 - max_weight / 2, max=max_weight / 2)
+        lo = torch.full((len(thj), 1), 1 - max_weight / 2, dtype=thj.dtype, device=thj.device)
+        if widen is not None:
+            lo[(widen > 0).any(1)] = 0.0  # an outdated State's pull keeps weakening with age: no floor
+        share[:, mu_at] = torch.minimum(torch.maximum(share[:, mu_at], lo), torch.full_like(lo, max_weight / 2))
     z = th_i + share * (thj - th_i)
     a = 2 * share
     a[:, mu_at] = torch.maximum(a[:, mu_at], floor).clamp(max=2 - min_weight)
