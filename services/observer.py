@@ -373,12 +373,9 @@ def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, devi
     worker = threading.Thread(target=obs.map_loop, args=(mapping_done,), name="maps")
     with Bus.open(cfg.zenoh, keys, "observer", 0) as bus:
         bus.end_with_run(stop)
-        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.world_wait_s(), stop=stop)
+        world = bus.world(cfg.world_wait_s(), stop)
         if world is None:
-            if stop.is_set():
-                return 0
-            log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.world_wait_s())
-            return 3
+            return 0 if stop.is_set() else 3
         obs.on_world(world)
         # A watcher: behind rings, so that logging to Rerun never slows the world or the learners.
         bus.subscribe(keys.scan("*"), Scan, obs.on_scan, newest=WATCH_RING)

@@ -446,7 +446,7 @@ class Recorder:
 
     def fetch_ground_truth(self, bus: Bus, stop: threading.Event) -> None:
         """Ask the world for its map and write the ground truth (a failed write fails the run)."""
-        world = bus.query(bus.keys.world_map(), WorldMap, timeout=self.cfg.world_wait_s(), stop=stop)
+        world = bus.world(self.cfg.world_wait_s(), stop)
         if world is not None:
             try:
                 save_ground_truth(self.run_dir, world)

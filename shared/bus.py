@@ -26,7 +26,16 @@ from typing import Any, TypeVar
 import zenoh
 
 from swarmmap.shared.config import ConfigError, ZenohSettings
-from swarmmap.shared.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, decode, encode
+from swarmmap.shared.protocol import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    Keys,
+    Message,
+    ProtocolError,
+    RunDone,
+    WorldMap,
+    decode,
+    encode,
+)
 from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, identity, own_folder
 
 log = logging.getLogger(__name__)
@@ -361,6 +370,15 @@ class Bus:
                     self.refuse(key, err)
             time.sleep(retry_every) if stop is None else stop.wait(retry_every)
         return None
+
+    def world(self, timeout: float, stop: threading.Event | None = None) -> WorldMap | None:
+        """The world's map (:meth:`query`); None, logged unless ``stop`` is set, when no reply comes
+        within ``timeout`` seconds."""
+        world = self.query(self.keys.world_map(), WorldMap, timeout, stop)
+        if world is None and not (stop is not None and stop.is_set()):
+            log.error("%s-%s: no reply from the world on %s within %.0f s", self.service, self.ident,
+                      self.keys.world_map(), timeout)
+        return world
 
     def close(self) -> None:
         if self.dropped:  # what this service refused, in its log for good

@@ -308,12 +308,9 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         for r in robots:
             bus.announce(r)
         warm_up(s.optimizer)  # while the world starts and the robots drive
-        world = bus.query(keys.world_map(), WorldMap, timeout=cfg.world_wait_s(), stop=stop)
+        world = bus.world(cfg.world_wait_s(), stop)
         if world is None:
-            if stop.is_set():
-                return 0
-            log.error("no reply from the world on %s within %.0f s", keys.world_map(), cfg.world_wait_s())
-            return 3
+            return 0 if stop.is_set() else 3
         log.info("robots %s (%s transport): model %s %s on %s", robots, s.transport, s.model, s.model_shape, device)
         try:
             for learner in learners:
