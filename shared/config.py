@@ -108,7 +108,8 @@ class WorldSettings(Section):
                                                     "coordinates for a .png plan, metres otherwise); none = plan paths")
     pixels_per_metre: float = Field(100.0, gt=0, description="scale of a .png plan")
     dinno_border_px: int = Field(30, ge=0, description="border of a .png plan forced occupied (DiNNO: 30)")
-    export: Path | None = Field(None, description="write plan.stl, occupancy.png and occupancy.npz to this folder and exit")
+    export: Path | None = Field(None, description="write plan.stl, occupancy.png, occupancy.npz and a ROS map "
+                                                    "(map.yaml, map.pgm) to this folder and exit")
     rooms_x: int = Field(3, ge=1, le=12, description="procedural plan: rooms along x")
     rooms_y: int = Field(2, ge=1, le=12, description="procedural plan: rooms along y")
     room_min_m: float = Field(2.5, gt=0.5, description="procedural plan: smallest room side (m)")
@@ -291,7 +292,7 @@ class LearnerSettings(Section):
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
     quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value before Huffman coding (2-8)")
     lowrank_rank: int = Field(1, ge=1, le=64, description="lowrank: rank of each weight matrix's update (PowerGossip; "
-                                                              "measured to lose consensus under Adam: see README)")
+                                                              "measured to lose consensus under Adam: docs/results.md)")
     keyframe_every: int = Field(100, ge=1, description="topk, sign, quant, lowrank: every this many States, one carries the whole "
                                                        "vector (quant: at 16 bits)")
     torch_threads: int = Field(1, ge=1, description="CPU threads per learner process")
