@@ -251,16 +251,19 @@ class Launcher:
         up = self.cfg.up
         return {"observer": up.observer_grace_s, "learner": up.learner_grace_s}.get(child.service, up.stop_grace_s)
 
-    def let_leave(self) -> None:
-        """Wait until every service but the router has exited by itself, at most its grace time."""
+    def let_leave(self, alive: set[str]) -> None:
+        """Wait until every service but the router has exited by itself, at most its grace time. A
+        service restarted that is not up again (``alive``: the names with a liveliness token) once
+        the recorder has gone will never hear the run's end (``run/done``): it gets no grace,
+        :meth:`shutdown` stops it."""
         start = time.monotonic()
         for c in self.children:
-            grace = self.grace(c)
-            if c.service != "router":
-                try:
-                    c.proc.wait(max(0.0, start + grace - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    pass
+            if c.service == "router" or (c.restarts and c.proc.poll() is None and c.name not in alive):
+                continue
+            try:
+                c.proc.wait(max(0.0, start + self.grace(c) - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
 
     def shutdown(self) -> None:
         """SIGTERM every service still running, all at once (the router last, as the others may
@@ -299,8 +302,8 @@ class Launcher:
                 bus.subscribe(self.keys.run_done(), RunDone, self.on_done, sender_from_key=False)
                 recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
-            if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves (run/done)
-                self.let_leave()
+                if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves
+                    self.let_leave({f"{service}-{ident}" for service, ident in bus.alive()})  # (run/done)
         except RuntimeError as exc:
             log.error("%s", exc)
             status = 1

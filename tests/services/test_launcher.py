@@ -26,13 +26,34 @@ def test_a_learner_gets_its_own_grace_to_write_its_outputs(tmp_path):
     launcher.children = [world, learner]
     try:
         start = time.monotonic()
-        launcher.let_leave()
+        launcher.let_leave({"world-0", "learner-0"})
         took = time.monotonic() - start
         assert learner.proc.poll() == 0, "up stopped waiting before the learner had finished"
         assert world.proc.poll() is None, "the world was waited for as long as a learner"
         assert took < 15, f"let_leave took {took:.1f} s: it waited past the learner's exit"
     finally:
         for c in (world, learner):
+            c.proc.kill()
+            c.proc.wait()
+
+
+def test_a_restarted_service_not_up_again_when_the_run_ends_gets_no_grace(tmp_path):
+    """A learner restarted just before the run ended, still starting (no liveliness token), will
+    never hear ``run/done`` (the recorder has gone): ``up`` does not wait for it, while a restarted
+    learner that is up gets its grace."""
+    cfg = RunConfig(run_dir=tmp_path / "run", up=UpSettings(stop_grace_s=0.3, learner_grace_s=20.0))
+    launcher = Launcher(cfg, threading.Event())
+    starting = Child("learner", 1, sleeper(60), tmp_path / "learner-1.log", restarts=1)
+    finishing = Child("learner", 2, sleeper(2.0), tmp_path / "learner-2.log", restarts=1)
+    launcher.children = [starting, finishing]
+    try:
+        start = time.monotonic()
+        launcher.let_leave({"learner-2"})
+        took = time.monotonic() - start
+        assert finishing.proc.poll() == 0, "up stopped waiting before the restarted learner that is up had finished"
+        assert starting.proc.poll() is None and took < 15, f"up waited {took:.1f} s for a learner that never came up again"
+    finally:
+        for c in (starting, finishing):
             c.proc.kill()
             c.proc.wait()
 
