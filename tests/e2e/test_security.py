@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import stat
 import subprocess
+import threading
 import time
 
 import numpy as np
@@ -45,7 +46,11 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
         cfg = RunConfig.model_validate(yaml.safe_load((run_dir / "config.yaml").read_text()))
         keys = Keys(cfg.key_prefix, cfg.run_id)
         router = cfg.zenoh.model_copy(update={"connect_timeout_s": 5})
-        # A stranger: plain TCP, then TLS with a certificate of another CA.
+        # A member gone rogue, from the start of the run to its end: learner 1's own credentials.
+        errors, sent = [], []
+        attacker = threading.Thread(target=lambda: errors.extend(guard(attack, router, keys, cfg, proc, recorder_log, sent)))
+        attacker.start()
+        # Meanwhile a stranger: plain TCP, then TLS with a certificate of another CA.
         with pytest.raises(ConfigError, match="cannot open a session"):
             Bus.open(router.model_copy(update={"insecure": True, "mode": "client"}), keys, "learner", 1)
         write_credentials(tmp_path / "forged", cfg.run_id, identities(3), router_names(cfg.zenoh.connect))
@@ -55,18 +60,9 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
         with pytest.raises(ConfigError, match="cannot open a session"):  # a member of another run, its own credentials
             Bus.open(router.model_copy(update={"secrets": tmp_path / "clean" / "secrets"}), Keys(cfg.key_prefix, clean_run),
                      "learner", 1)
-        # A member gone rogue: learner 1's own credentials.
-        size = param_count(build_network(cfg.network(), (0, 0, 1, 1), cfg.seed))
-        zeros = Tensor.of(np.zeros(size, np.float32), "<f4")
-        with Bus.open(router, keys, "learner", 1) as rogue:
-            as_self, as_other = rogue.publisher(keys.state(1)), rogue.publisher(keys.state(2))
-            assert wait_until(lambda: "round    0" in recorder_log.read_text(), 120, 0.1)
-            deadline = time.monotonic() + 60
-            while proc.poll() is None and time.monotonic() < deadline and "(final)" not in recorder_log.read_text():
-                for k in range(cfg.learner.rounds + 1):
-                    as_self.put(State(run=cfg.run_id, sender=1, round=k, params=zeros))
-                    as_other.put(State(run=cfg.run_id, sender=2, round=k, params=zeros))
-                time.sleep(0.05)
+        attacker.join(timeout=240)
+        assert not errors, errors
+        assert sent, "the rogue member sent nothing before the run ended"
         assert proc.wait(timeout=240) == 0
     finally:
         if proc.poll() is None:
@@ -80,6 +76,31 @@ def test_strangers_are_refused_and_a_hostile_member_changes_nothing(tmp_path):
     logs = (run_dir / "logs" / "learner-0.log").read_text()
     assert "refused the state of node 1" in logs and "refused the state of node 2" not in logs
     assert_each_key_apart(run_dir, cfg.run_id)
+
+
+def guard(fn, *args) -> list[BaseException]:
+    """``fn(*args)``, its exception (for a thread) in a list."""
+    try:
+        fn(*args)
+    except BaseException as exc:  # noqa: BLE001 - handed to the test's thread
+        return [exc]
+    return []
+
+
+def attack(router, keys: Keys, cfg: RunConfig, proc: subprocess.Popen, recorder_log, sent: list) -> None:
+    """As learner 1 (its own credentials): all-zero States of every round, as learner 1 and as
+    learner 2, until the run is over."""
+    size = param_count(build_network(cfg.network(), (0, 0, 1, 1), cfg.seed))
+    zeros = Tensor.of(np.zeros(size, np.float32), "<f4")
+    with Bus.open(router, keys, "learner", 1) as rogue:
+        as_self, as_other = rogue.publisher(keys.state(1)), rogue.publisher(keys.state(2))
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and time.monotonic() < deadline and "(final)" not in recorder_log.read_text():
+            for k in range(cfg.learner.rounds + 1):
+                as_self.put(State(run=cfg.run_id, sender=1, round=k, params=zeros))
+                as_other.put(State(run=cfg.run_id, sender=2, round=k, params=zeros))
+            sent.append(time.monotonic())
+            time.sleep(0.05)
 
 
 def public_der(key) -> bytes:
