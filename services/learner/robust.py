@@ -7,7 +7,7 @@ each copy in the State: a Bayesian layer's means and rho apart, a tracker's or c
 - :class:`RoundScreen` judges a round's States together before the node update: a State one of
   whose blocks lies more than ``spread_factor`` times the round's honest spread from this node's
   (the median over the neighbours' States of the round, with at least :data:`MIN_NEIGHBOURS` of
-  them; with fewer, the spread remembered from earlier rounds) is left out of the round and
+  them; with fewer, no State is an outlier of anything) is left out of the round and
   counted as refused (``outlier``); a neighbour that sends only such States is left out as Algorithm
   1 leaves out any that sends only refused ones. A random direction at 0.45 of the norm, a layer's
   sign flipped, the vector scaled, a rho lowered by 2: each puts some block many times the honest
@@ -18,8 +18,10 @@ each copy in the State: a Bayesian layer's means and rho apart, a tracker's or c
   grow without bound, never cancelled by the other end of the link).
 
 With an honest majority among a node's neighbours (and at least MIN_NEIGHBOURS of them) a liar is
-an outlier; with fewer neighbours the screen falls back on the remembered spread and the bounds on
-nothing, and only the per-State checks (:mod:`~swarmmap.services.learner.screening`) apply.
+an outlier; with fewer neighbours (a ring, or a team left with two) only the per-State checks
+(:mod:`~swarmmap.services.learner.screening`) apply. A spread remembered from earlier rounds would
+not do: the honest spread grows fastest in the first rounds (at round 0 the States are identical),
+so an old one refuses honest neighbours.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ from swarmmap.shared.layout import StateLayout
 
 log = logging.getLogger("learner")
 MIN_NEIGHBOURS = 3  # a round's honest spread is the median of at least this many neighbours' States
-REMEMBER = 0.7  # weight of the remembered spread against this round's median
 
 
 def block_ids(layout: StateLayout, copies: int | None = None) -> tuple[np.ndarray, list[str]]:
@@ -56,7 +57,6 @@ class RoundScreen:
         self.n = layout.param_count
         self.counts = np.bincount(self.ids, minlength=len(self.names)).astype(np.float64)
         self.factor = spread_factor
-        self.spread: np.ndarray | None = None  # per block, the honest spread remembered from earlier rounds
         self.warned = False
 
     def deviations(self, own: np.ndarray, theirs: np.ndarray) -> np.ndarray:
@@ -71,18 +71,13 @@ class RoundScreen:
         dev = {j: self.deviations(own, v[: self.n]) for j, v in peers.items() if v.shape[0] >= self.n}
         scale = np.sqrt(np.bincount(self.ids, weights=own.astype(np.float64) ** 2, minlength=len(self.names)) / self.counts)
         floor = 1e-3 * scale + 1e-7  # identical States (round 0) have no spread: a floor, not zero
-        if len(dev) >= MIN_NEIGHBOURS:
-            median = np.median(np.stack(list(dev.values())), axis=0)
-            self.spread = median if self.spread is None else REMEMBER * self.spread + (1 - REMEMBER) * median
-            reference = np.maximum(median, floor)
-        elif self.spread is not None:
-            reference = np.maximum(self.spread, floor)
-        else:
+        if len(dev) < MIN_NEIGHBOURS:
             if not self.warned:
                 self.warned = True
-                log.info("too few neighbours' States (%d of %d needed) to judge a round's spread yet: only each "
-                         "State's own checks apply", len(dev), MIN_NEIGHBOURS)
+                log.info("too few neighbours' States (%d of %d needed) to judge a round's spread: only each State's "
+                         "own checks apply", len(dev), MIN_NEIGHBOURS)
             return {}
+        reference = np.maximum(np.median(np.stack(list(dev.values())), axis=0), floor)
         refused = {}
         for j, d in dev.items():
             ratio = d / (self.factor * reference)
