@@ -73,8 +73,7 @@ class Algorithm1:
         """Start afresh at round ``start_round`` of ``rounds`` from ``state``."""
         self.members = Membership(self.node_id, self.neighbours, self.rules, self.stats)
         self.replay = Replay(self.node_id, self.rules.keep_rounds, self.rules.resend_after, self.stats)
-        self.late = LateStates()
-        self.buf = RoundBuffer()
+        self.late, self.buf = LateStates(), RoundBuffer()
         self.rnd, self.rounds, self.updated, self.joining = start_round, rounds, False, resumed
         self.round_started = time.monotonic()
         self.state = self.round_state = state  # round_state: what State(rnd) carries, the round's start (resent as such)
@@ -138,7 +137,8 @@ class Algorithm1:
                 self.members.heard_from(msg.sender, now)
             self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state))
         elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
-            if newest:
+            if newest:  # (it computes its rounds anew: what it sent before it died is not held against it)
+                self.buf.forget_sender(msg.sender)
                 self.replay.answer(msg.sender, msg.round, self.rnd, self.transport, now)
         elif msg.kind == "complete":
             self.on_complete(msg, now)
