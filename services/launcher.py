@@ -42,6 +42,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -251,14 +252,16 @@ class Launcher:
         up = self.cfg.up
         return {"observer": up.observer_grace_s, "learner": up.learner_grace_s}.get(child.service, up.stop_grace_s)
 
-    def let_leave(self, alive: set[str]) -> None:
+    def let_leave(self, alive: Callable[[], set[str]]) -> None:
         """Wait until every service but the router has exited by itself, at most its grace time. A
-        service restarted that is not up again (``alive``: the names with a liveliness token) once
-        the recorder has gone will never hear the run's end (``run/done``): it gets no grace,
-        :meth:`shutdown` stops it."""
+        service restarted that is not up again (``alive()``: the names with a liveliness token,
+        asked only when a restarted service still runs) once the recorder has gone will never hear
+        the run's end (``run/done``): it gets no grace, :meth:`shutdown` stops it."""
+        restarted = {c.name for c in self.children if c.restarts and c.proc.poll() is None}
+        up = alive() if restarted else set()
         start = time.monotonic()
         for c in self.children:
-            if c.service == "router" or (c.restarts and c.proc.poll() is None and c.name not in alive):
+            if c.service == "router" or (c.name in restarted and c.name not in up):
                 continue
             try:
                 c.proc.wait(max(0.0, start + self.grace(c) - time.monotonic()))
@@ -303,7 +306,7 @@ class Launcher:
                 recorder = self.start_services(bus, t0)
                 status = self.watch(recorder)
                 if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves
-                    self.let_leave({f"{service}-{ident}" for service, ident in bus.alive()})  # (run/done)
+                    self.let_leave(lambda: {f"{service}-{ident}" for service, ident in bus.alive()})  # (run/done)
         except RuntimeError as exc:
             log.error("%s", exc)
             status = 1

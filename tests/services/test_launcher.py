@@ -26,7 +26,7 @@ def test_a_learner_gets_its_own_grace_to_write_its_outputs(tmp_path):
     launcher.children = [world, learner]
     try:
         start = time.monotonic()
-        launcher.let_leave({"world-0", "learner-0"})
+        launcher.let_leave(lambda: {"world-0", "learner-0"})
         took = time.monotonic() - start
         assert learner.proc.poll() == 0, "up stopped waiting before the learner had finished"
         assert world.proc.poll() is None, "the world was waited for as long as a learner"
@@ -48,7 +48,7 @@ def test_a_restarted_service_not_up_again_when_the_run_ends_gets_no_grace(tmp_pa
     launcher.children = [starting, finishing]
     try:
         start = time.monotonic()
-        launcher.let_leave({"learner-2"})
+        launcher.let_leave(lambda: {"learner-2"})
         took = time.monotonic() - start
         assert finishing.proc.poll() == 0, "up stopped waiting before the restarted learner that is up had finished"
         assert starting.proc.poll() is None and took < 15, f"up waited {took:.1f} s for a learner that never came up again"
