@@ -69,14 +69,14 @@ class RoundScreen:
             return {}
         own = own[: self.n]
         dev = {j: self.deviations(own, v[: self.n]) for j, v in peers.items() if v.shape[0] >= self.n}
-        scale = np.sqrt(np.bincount(self.ids, weights=own.astype(np.float64) ** 2, minlength=len(self.names)) / self.counts)
-        floor = 1e-3 * scale + 1e-7  # identical States (round 0) have no spread: a floor, not zero
         if len(dev) < MIN_NEIGHBOURS:
             if not self.warned:
                 self.warned = True
                 log.info("too few neighbours' States (%d of %d needed) to judge a round's spread: only each State's "
                          "own checks apply", len(dev), MIN_NEIGHBOURS)
             return {}
+        scale = np.sqrt(np.bincount(self.ids, weights=own.astype(np.float64) ** 2, minlength=len(self.names)) / self.counts)
+        floor = 1e-3 * scale + 1e-7  # identical States (round 0) have no spread: a floor, not zero
         reference = np.maximum(np.median(np.stack(list(dev.values())), axis=0), floor)
         refused = {}
         for j, d in dev.items():
