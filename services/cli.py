@@ -73,6 +73,8 @@ EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learne
             ("world.floorplan", "--floorplan", "procedural, a CubiCasa5K model.svg, a DiNNO .png or a ROS map_server .yaml"),
             ("world.waypoints", "--waypoints", "folder of .npy waypoint paths, one per robot (default: paths planned "
                                                "through the plan)"),
+            ("world.dataset", "--dataset", "real LiDAR logs instead of a floor plan: a CARMEN log (.log, .clf, gzipped or not), "
+                                           "a ROS 1 bag, a rosbag2 folder or an .mcap file (docs/datasets.md)"),
             ("run_dir", "--run-dir", None),
             ("learner.device", "--device", "torch device of the learners: auto (a GPU when there is one), cpu, cuda, "
                                            "cuda:1 (the observer's: --set observer.device=...)"),

@@ -93,6 +93,8 @@ def closing_block(run_dir: Path, max_robots: int = 16) -> str:
         lines.append("  final val_bce  " + "  ".join(f"robot {r} {v:.4f}" for r, v in shown)
                      + ("  ..." if len(finals) > max_robots else ""))
         lines.append(f"  team mean      {sum(finals.values()) / len(finals):.4f} over {len(finals)} robot(s)")
+        if (ref := summary.get("reference")) is not None:  # a run on a dataset: val_bce on its held-out scans
+            lines.append(f"  reference      {ref['val_bce']:.4f}, the {ref['kind']} (val_bce on the same held-out scans)")
     sent = sum(v.get("bytes_sent") or 0 for v in learners.values())
     if sent:
         lines.append(f"  sent           {sent / 1e6:.1f} MB by the learners")

@@ -37,9 +37,12 @@ class PlanFacts:
     coverage: float | None = None  # share of free space within LiDAR range of a path
     waypoints: str | None = None  # the waypoint folder; None: paths planned through the plan
     expected_scans: int = 0  # over every robot: its path's length / speed x scan rate
+    dataset: str | None = None  # a run on real logs: what they give
 
     def describe(self) -> str:
         """``plan 353 (cubicasa): 12 rooms, 14.2 x 9.8 m; paths 20.1, 18.7 m (planned); coverage 97%``."""
+        if self.dataset is not None:
+            return f"dataset {self.name}: {self.dataset}; map {self.size_m[0]:.1f} x {self.size_m[1]:.1f} m"
         text = f"plan {self.name} ({self.kind}): {self.rooms} room(s), {self.size_m[0]:.1f} x {self.size_m[1]:.1f} m"
         if self.path_lengths_m:
             source = f"waypoints from {self.waypoints}" if self.waypoints else "planned through the plan"
@@ -155,6 +158,24 @@ def plan_facts(cfg: RunConfig) -> PlanFacts:
     return facts
 
 
+def dataset_facts(cfg: RunConfig) -> PlanFacts:
+    """Read the run's logs and cut them into robots as the world will; raises DatasetError."""
+    import numpy as np
+
+    from swarmmap.shared.datasets import BagTopics, read_log, split_team
+
+    w = cfg.world
+    logs = [read_log(p, w.dataset_pose, BagTopics(w.dataset_scan_topic, w.dataset_odom_topic, w.dataset_fixed_frame))
+            for p in w.dataset]
+    team = split_team(logs, cfg.robots, w.dataset_holdout_every)
+    ends = np.concatenate([lg.endpoints(w.lidar_max_range_m) for lg in logs] + [lg.poses[:, :2] for lg in logs])
+    size = tuple(float(v) for v in ends.max(0) - ends.min(0) + 2 * w.dataset_margin_m)
+    counts = [len(r.train) for r in team]
+    text = (f"{sum(map(len, logs))} scans of {', '.join(str(len(lg.angles)) for lg in logs)} beams; {cfg.robots} robots of "
+            f"{min(counts)}-{max(counts)} training scans (every {w.dataset_holdout_every}th scan held out for validation)")
+    return PlanFacts(", ".join(Path(p).name for p in w.dataset), "dataset", 0, size, expected_scans=sum(counts), dataset=text)
+
+
 def check_run(cfg: RunConfig, *, endpoints: bool, observer: bool = True) -> PlanFacts:
     """Every check above on the prepared ``cfg``; returns what the plan looks like, or raises
     one ConfigError listing every problem. ``endpoints``: the run uses the configured Zenoh
@@ -172,6 +193,16 @@ def check_run(cfg: RunConfig, *, endpoints: bool, observer: bool = True) -> Plan
     if cfg.learner.graph == "file" and cfg.learner.graph_file is not None and not cfg.learner.graph_file.is_file():
         problems.append(f"learner.graph_file: {cfg.learner.graph_file} does not exist; name a YAML/JSON list of [i, j] edges")
     facts = None
+    if cfg.world.dataset:
+        from swarmmap.shared.datasets import DatasetError
+
+        try:
+            facts = dataset_facts(cfg)
+        except DatasetError as exc:
+            problems.append(f"world.dataset: {exc}")
+        if problems:
+            raise ConfigError("refusing to start (nothing was created):\n" + "\n".join(f"  {p}" for p in problems))
+        return facts
     try:
         facts = plan_facts(cfg)
     except PlanError as exc:

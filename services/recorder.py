@@ -325,17 +325,33 @@ def closing_line(doc: dict) -> str:
     sent = sum(v.get("bytes_sent") or 0 for v in doc["learners"].values())
     per_robot = ", ".join(f"robot {r} {v:.4f}" for r, v in finals.items()) or "none reported"
     mean = f"; team mean {sum(finals.values()) / len(finals):.4f}" if finals else ""
-    return f"final val_bce: {per_robot}{mean}; {duration(doc['wall_time_s'])}; {sent / 1e6:.1f} MB sent by the learners"
+    ref = doc.get("reference")
+    ref = f" (held-out scans; the log-odds grid's {ref['val_bce']:.4f})" if ref else ""
+    return f"final val_bce: {per_robot}{mean}{ref}; {duration(doc['wall_time_s'])}; {sent / 1e6:.1f} MB sent by the learners"
 
 
 def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
-    """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set)."""
+    """``groundtruth.png`` and ``groundtruth.npz`` (grid, resolution, origin, validation set; on a
+    dataset, which has no ground truth, ``reference``: the log-odds grid's probabilities, whose
+    trinary map is the grid)."""
     grid = world.grid.numpy()
     save_png(run_dir / "groundtruth.png", np.where(grid == 2, 0.5, grid.astype(float)))  # unknown (ROS maps): grey
     buf = io.BytesIO()
+    extra = {"reference": world.reference.numpy()} if world.reference is not None else {}
     np.savez_compressed(buf, grid=world.grid.numpy(), resolution=world.resolution, origin=np.asarray(world.origin),
-                        val_points=world.val_points.numpy(), val_labels=world.val_labels.numpy())
+                        val_points=world.val_points.numpy(), val_labels=world.val_labels.numpy(), **extra)
     atomic_write_bytes(run_dir / "groundtruth.npz", buf.getvalue())
+
+
+def reference_scores(world: WorldMap) -> dict:
+    """The log-odds grid's scores on the held-out validation set of a run on a dataset."""
+    from swarmmap.shared.logodds import LogOddsGrid, bce
+
+    grid = LogOddsGrid(np.zeros(world.grid.shape, np.float32), world.resolution, tuple(world.origin))
+    p = world.reference.numpy()
+    index, inside = grid.cell_index(world.val_points.numpy().astype(np.float64))
+    at = np.where(inside, p.ravel()[index], 0.5)
+    return {"kind": "log-odds grid of the training scans", "val_bce": round(bce(at, world.val_labels.numpy()), 6)}
 
 
 def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wall: float, started: float | None = None,
@@ -426,6 +442,7 @@ class Recorder:
         self.metrics = MetricsRecorder(self.run_dir / "metrics.csv")
         self._disk_checked = -float("inf")
         self._ready = False  # every learner came alive
+        self.world: WorldMap | None = None
 
     def on_metrics(self, m: Metrics) -> None:
         """A learner's Metrics: into metrics.csv (a failed write fails the run), the rules and the log."""
@@ -448,6 +465,7 @@ class Recorder:
         """Ask the world for its map and write the ground truth (a failed write fails the run)."""
         world = bus.world(self.cfg.world_wait_s(), stop)
         if world is not None:
+            self.world = world
             try:
                 save_ground_truth(self.run_dir, world)
             except OSError as exc:
@@ -476,6 +494,8 @@ class Recorder:
     def summary(self, ok: bool, reason: str) -> dict:
         """summary.json's content for this outcome (with who held a stalled run up)."""
         doc = summary(self.cfg, self.metrics, ok, reason, time.monotonic() - self.t0, self.started, self.earlier)
+        if self.world is not None and self.world.reference is not None:
+            doc["reference"] = reference_scores(self.world)
         if not ok and reason.startswith("the run made no progress"):
             doc["held_up_by"] = self.stall.held_up_by()
         return doc

@@ -186,9 +186,28 @@ def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarra
                     positions=None if paths is None else Tensor.of(np.array([p[-1] for p in paths]), "<f4"))
 
 
+def wait_for_consumers(cfg: RunConfig, bus: Bus, stop: threading.Event) -> bool:
+    """Wait (up to ``world.wait_for_consumers_s``) for the services of ``world.wait_for``; False
+    when told to stop meanwhile."""
+    w = cfg.world
+    deadline = time.monotonic() + w.wait_for_consumers_s
+    for service in w.wait_for:
+        wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner") else {"0"}
+        missing = bus.wait_alive(service, wanted, max(0.0, deadline - time.monotonic()), stop)
+        if stop.is_set():
+            return False
+        if missing:
+            log.warning("driving without %s %s (not alive after %.0f s)", service, sorted(missing), w.wait_for_consumers_s)
+    return True
+
+
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """The world service's main loop; returns the process exit status."""
     w = cfg.world
+    if w.dataset:
+        from swarmmap.services.dataset import run as run_dataset  # a log needs no pybullet world
+
+        return run_dataset(cfg, stop)
     try:
         plan = build_plan(cfg)
         grid = plan.occupancy(w.grid_resolution_m)
@@ -222,14 +241,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                 log.info("serving the map only (world.drive is off)")
                 stop.wait()
                 return 0
-            deadline = time.monotonic() + w.wait_for_consumers_s
-            for service in w.wait_for:
-                wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner") else {"0"}
-                missing = bus.wait_alive(service, wanted, max(0.0, deadline - time.monotonic()), stop)
-                if stop.is_set():
-                    return 0
-                if missing:
-                    log.warning("driving without %s %s (not alive after %.0f s)", service, sorted(missing), w.wait_for_consumers_s)
+            if not wait_for_consumers(cfg, bus, stop):
+                return 0
             period = 1.0 / w.lidar_rate_hz
             next_scan = 0.0
             seq = 0

@@ -148,6 +148,23 @@ class WorldSettings(Section):
                     "add observer when one records the run, so that it sees every pose and scan")
     wait_for_consumers_s: float = Field(120.0, ge=0, description="how long to wait for the services of wait_for before driving anyway")
     drive: bool = Field(True, description="drive the robots; false = only serve the map (when the streamers replay recordings)")
+    dataset: list[str] = Field(default_factory=list, description="real LiDAR logs to serve instead of a floor plan: CARMEN logs "
+                               "(.log, .clf, gzipped or not), ROS 1 bags, rosbag2 folders or .mcap files; each gives robots / "
+                               "(number of logs) robots, contiguous segments of its trajectory (docs/datasets.md)")
+    dataset_pose: Literal["auto", "log", "odom", "tf"] = Field(
+        "auto", description="the scans' poses: a CARMEN log's laser-line pose (log: its corrected poses) or odometry; a bag's "
+                            "odometry topic or tf; auto = log for CARMEN, odometry when a bag has the topic, else tf")
+    dataset_scan_topic: str = Field("/scan", description="a bag's sensor_msgs/LaserScan topic")
+    dataset_odom_topic: str = Field("/odom", description="a bag's nav_msgs/Odometry topic")
+    dataset_fixed_frame: str | None = Field(None, description="tf poses: the fixed frame (none: map when the bag has it, else odom)")
+    dataset_holdout_every: int = Field(10, ge=2, description="every k-th scan of each robot is held out: never trained on, the "
+                                                             "validation set's beams")
+    dataset_margin_m: float = Field(1.0, ge=0, description="the map reaches this far beyond the farthest hit and pose (m)")
+
+    @field_validator("dataset", mode="before")
+    @classmethod
+    def _dataset_as_list(cls, value: Any) -> Any:
+        return [value] if isinstance(value, (str, Path)) else value
 
     @model_validator(mode="after")
     def _ranges(self) -> WorldSettings:
@@ -648,6 +665,13 @@ PRESETS["dinno-fast"] = {
                 "rho_init": 0.01},
 }
 DEFAULT_PRESET = "demo"
+# Under a preset and over it nothing but what a user gives: a run on a real LiDAR log (world.dataset)
+# serves real ranges (no added noise or dropouts) of a scanner that sees farther than a
+# TurtleBot's, labelled every half metre or so.
+DATASET_DEFAULTS: dict[str, Any] = {
+    "world": {"lidar_max_range_m": 10.0, "lidar_min_range_m": 0.05},
+    "lidar": {"range_noise_std_m": 0.0, "dropout_prob": 0.0, "samples_per_beam": 20},
+}
 
 
 # ----------------------------------------------------------------------------- loading
@@ -835,7 +859,8 @@ def validate_config(doc: dict[str, Any]) -> RunConfig:
 
 def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = None,
             preset: str | None = None, environ: dict[str, str] | None = None) -> RunConfig:
-    """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict)."""
+    """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict);
+    a run on a dataset (``world.dataset``) takes :data:`DATASET_DEFAULTS` over its preset."""
     file_doc = read_config_file(config_file) if config_file else {}
     env_doc = env_overrides(environ)
     cli = cli or {}
@@ -847,9 +872,12 @@ def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = Non
                               f"allowed: {', '.join(PRESETS)}")
         merged = deep_merge(merged, PRESETS[name])
         merged["preset"] = name
+    given: dict[str, Any] = {}
     for layer in (file_doc, env_doc, cli):
-        merged = deep_merge(merged, layer)
-    return validate_config(merged)
+        given = deep_merge(given, layer)
+    if (given.get("world") or {}).get("dataset") or (merged.get("world") or {}).get("dataset"):
+        merged = deep_merge(merged, DATASET_DEFAULTS)
+    return validate_config(deep_merge(merged, given))
 
 
 # ----------------------------------------------------------------------------- command line

@@ -104,9 +104,11 @@ def error_map(maps: dict[str, np.ndarray], truth: np.ndarray, known: np.ndarray)
 
 
 def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, std_max: float = 0.25,
-                    notes: dict[int, str] | None = None, hits: dict[int, np.ndarray] | None = None) -> None:
+                    notes: dict[int, str] | None = None, hits: dict[int, np.ndarray] | None = None,
+                    truth: str = "ground truth") -> None:
     """One row per robot (ground truth with its ``hits``, mean, std where there is one, error),
-    axes in metres, a colour bar per scale; written to ``path`` as a PNG, atomically."""
+    axes in metres, a colour bar per scale; written to ``path`` as a PNG, atomically. ``truth``
+    names what ``grid`` is (a run on a dataset: the log-odds grid, a reference)."""
     from swarmmap.shared.atomic import atomic_write_bytes
 
     plt = pyplot()
@@ -127,12 +129,12 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
     axes = np.array([[fig.add_subplot(grid_spec[r, c]) for c in range(len(kinds))] for r in range(len(robots))])
     images: dict[str, object] = {}
     for row, robot in zip(axes, robots):
-        images |= overview_row(row, kinds, grid, maps[robot], std_max, (hits or {}).get(robot), robot)
+        images |= overview_row(row, kinds, grid, maps[robot], std_max, (hits or {}).get(robot), robot, truth)
         row[0].set_ylabel(f"robot {robot}" + (f"\n{notes[robot]}" if notes and robot in notes else "") + "\ny (m)")
     for ax in axes[-1]:
         ax.set_xlabel("x (m)")
-    bars = {"mean": ("occupancy (ground truth: unknown grey)", slice(0, 2)), "std": ("std of occupancy", slice(2, 3)),
-            "error": ("|mean - truth|", slice(len(kinds) - 1, len(kinds)))}
+    bars = {"mean": (f"occupancy ({truth}: unknown grey)", slice(0, 2)), "std": ("std of occupancy", slice(2, 3)),
+            "error": ("|mean - truth|" if truth == "ground truth" else f"|mean - {truth}|", slice(len(kinds) - 1, len(kinds)))}
     for kind, (label, columns) in bars.items():
         if kind in images:
             fig.colorbar(images[kind], cax=fig.add_subplot(grid_spec[len(robots), columns]), orientation="horizontal",
@@ -144,20 +146,22 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
 
 
 def overview_row(row, kinds: list[str], grid, maps: dict[str, np.ndarray], std_max: float, hits: np.ndarray | None,
-                 robot: int) -> dict[str, object]:
+                 robot: int, truth_name: str = "ground truth") -> dict[str, object]:
     """One robot's panels of the overview; returns its images by kind."""
     import matplotlib
 
     ext = map_extent(maps)
     truth, known = truth_on(grid, maps)
     err, caption = error_map(maps, truth, known)
+    if truth_name != "ground truth":
+        caption = caption.replace("truth", truth_name.split(" (")[0]).replace("right", "agree")
     images = {}
     for ax, kind in zip(row, kinds):
         if kind == "truth":
             show(ax, np.where(known, truth.astype(float), UNKNOWN_GREY), ext, "occupancy")
             if hits is not None and len(hits):
                 ax.scatter(hits[:, 0], hits[:, 1], s=0.3, color=matplotlib.colormaps["tab10"](robot % 10), linewidths=0)
-            ax.set_title("ground truth, its LiDAR hits" if hits is not None and len(hits) else "ground truth", fontsize=9)
+            ax.set_title(f"{truth_name}, its LiDAR hits" if hits is not None and len(hits) else truth_name, fontsize=9)
         elif kind == "mean":
             images["mean"] = show(ax, maps["mean"], ext, "occupancy")
             ax.set_title("mean occupancy", fontsize=9)
@@ -196,5 +200,7 @@ def write_overview(run_dir: Path, std_max: float = 0.25, notes: dict[int, str] |
         return None
     maps = {r: load_maps(run_dir, r) for r in robots}
     path = run_dir / "overview.png"
-    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots})
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        truth = "log-odds grid (reference)" if "reference" in gt.files else "ground truth"
+    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots}, truth)
     return path

@@ -435,7 +435,12 @@ class WorldMap(Message):
     world and never ground truth) covers x in [origin_x + c*res, +res) and y in
     [origin_y + r*res, +res): row 0 is the southern edge (y up). ``val_labels`` come from the
     ground truth, never from a sensor. ``positions`` (robots, 2) are where the robots stand
-    after their traversal (for distance-based communication graphs). ``sender`` is 0."""
+    after their traversal (for distance-based communication graphs). ``sender`` is 0.
+
+    A run on a real log has no ground truth: ``reference`` (float32, the grid's shape) is then
+    the classic log-odds grid's occupancy probability from the training scans, ``grid`` its
+    trinary map (map_saver's thresholds), and the validation set is the held-out scans' beams,
+    labelled along each beam (free before the hit, occupied at it)."""
 
     KIND: ClassVar[str] = "WorldMap"
     resolution: Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -445,10 +450,15 @@ class WorldMap(Message):
     val_labels: Tensor
     robots: Annotated[int, Field(ge=1, le=10000)]
     positions: Tensor | None = None
+    reference: Tensor | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> WorldMap:
         _require(self.grid, "grid", "|u1", 2)
+        if self.reference is not None:
+            _require(self.reference, "reference", "<f4", 2)
+            if self.reference.shape != self.grid.shape:
+                raise ValueError("reference must have the grid's shape")
         if self.positions is not None:
             _require(self.positions, "positions", "<f4", 2, (2,))
             if self.positions.shape[0] != self.robots:

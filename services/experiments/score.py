@@ -36,6 +36,9 @@ def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float
     grid = truth_grid(run_dir)
     files = sorted((run_dir / "data").glob("robot-*.npz"))
     points = np.concatenate([np.load(f)["points"] for f in files]) if files else np.zeros((0, 2))
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        if "reference" in gt.files:  # a dataset: no ground truth, the held-out beams are scored
+            return [held_out_scores(m, gt["val_points"], gt["val_labels"], points, radius_m) for m in maps]
     references: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # grid -> truth, observed, known
     scores = []
     for m in maps:
@@ -46,6 +49,40 @@ def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float
         truth, observed, known = references[res, shape, origin]
         scores.append(score_map(m["mean"][known], m["std"][known], truth[known], observed[known]))
     return scores
+
+
+def held_out_scores(maps: dict[str, np.ndarray], val_points: np.ndarray, val_labels: np.ndarray, points: np.ndarray,
+                    radius_m: float) -> dict[str, float]:
+    """Scores of a map on a dataset's held-out beams: its mean and std at each validation point's
+    cell against the point's label (a run on real logs has no ground-truth grid)."""
+    from swarmmap.shared.floorplan import OccupancyGrid
+    from swarmmap.shared.uncertainty import observed_mask, score_map
+
+    res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
+    rows, cols, inside = OccupancyGrid(np.zeros(shape, np.uint8), res, origin).cells(val_points)
+    observed = observed_mask(shape, origin, res, points, radius_m)
+    keep = inside
+    r, c = rows[keep], cols[keep]
+    return score_map(maps["mean"][r, c], maps["std"][r, c], val_labels[keep] > 0.5, observed[r, c])
+
+
+def reference_row(run_dir: Path) -> dict[str, float] | None:
+    """The log-odds grid's scores on a dataset's held-out beams (no std: those scores are NaN),
+    or None for a run with a ground truth."""
+    from swarmmap.shared.uncertainty import score_map
+
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        if "reference" not in gt.files:
+            return None
+        maps = {"mean": gt["reference"], "resolution": gt["resolution"], "origin": gt["origin"]}
+        points, labels = gt["val_points"], gt["val_labels"]
+    from swarmmap.shared.floorplan import OccupancyGrid
+
+    rows, cols, inside = OccupancyGrid(np.zeros(maps["mean"].shape, np.uint8), float(maps["resolution"]),
+                                       tuple(maps["origin"])).cells(points)
+    mean = np.where(inside, maps["mean"][rows, cols], 0.5)
+    out = score_map(mean, np.zeros_like(mean), labels > 0.5, np.ones(len(mean), bool))
+    return out | {k: float("nan") for k in ("auroc_error", "auroc_unobserved", "std_observed", "std_unobserved", "std_ratio")}
 
 
 def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str, np.ndarray]]:
@@ -133,6 +170,8 @@ def score(args: argparse.Namespace) -> int:
     rows = [(f"robot {r} (val_bce {fmt(vals.get(r))})", s) for r, s in per_robot.items()]
     if ensemble is not None:
         rows.append((f"ensemble of {ensemble[0]} robot model(s)", ensemble[1]))
+    if (reference := reference_row(args.run_dir)) is not None:
+        rows.append(("log-odds grid of the training scans (held-out beams)", reference))
     print("\n".join(scores_table(rows)))
     out = args.out or args.run_dir / "scores"
     if out.exists() and any(out.iterdir()):
@@ -147,6 +186,8 @@ def score(args: argparse.Namespace) -> int:
            "robots": {str(r): {"final_val_bce": vals.get(r), **s} for r, s in per_robot.items()}}
     if ensemble is not None:
         doc["ensemble"] = {"members": ensemble[0], **ensemble[1]}
+    if reference is not None:
+        doc["reference"] = {"kind": "log-odds grid of the training scans", **reference}
     (out / "scores.json").write_text(json.dumps(json_ready(doc), indent=1))
     reliability_figure([(f"robot {r}", s["reliability"]) for r, s in per_robot.items()]
                        + ([("ensemble", ensemble[1]["reliability"])] if ensemble else []), out / "reliability.png")
