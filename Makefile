@@ -14,7 +14,7 @@ RUN_ARGS ?=
 $(BIN)/swarmmap: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install --quiet $(TORCH)
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e '.[test,ros2]'
 	@touch $@
 
 setup: $(BIN)/swarmmap

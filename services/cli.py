@@ -18,9 +18,11 @@ from swarmmap.shared.config import (
     DEFAULT_PRESET,
     PRESETS,
     ConfigError,
+    Ros2Settings,
     RunConfig,
     add_common_arguments,
     add_field_argument,
+    add_model_arguments,
     config_from_args,
     resolve,
 )
@@ -63,9 +65,11 @@ DESCRIPTIONS = {
     "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
     "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
+    "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
+            "(nav_msgs/OccupancyGrid).",
 }
-SECTIONS = {"up": "up", "prepare": "up", "secrets": None, "router": None, "recorder": "recorder", "world": "world", "lidar": "lidar",
-            "learner": "learner", "observer": "observer", "status": None}
+SECTIONS = {"up": "up", "prepare": "up", "ros2": "ros2", "secrets": None, "router": None, "recorder": "recorder", "world": "world",
+            "lidar": "lidar", "learner": "learner", "observer": "observer", "status": None}
 TOOLS = ("runs", "logs", "compare")  # read run directories only: no config, no Zenoh
 # What a user sets most, first in up's and prepare's help: (config path, flag, help where the field's own does not fit).
 EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learner.rounds", "--rounds", None),
@@ -145,9 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=description, description=description, **extra)
         if name in ("up", "prepare"):
             add_up_arguments(p)
+        elif name == "ros2":
+            add_up_arguments(p)
+            add_model_arguments(p.add_argument_group("ros2"), Ros2Settings, "ros2")
         elif name in TOOLS or name == "status":
             add_tool_arguments(name, p)
-        if name not in ("up", "prepare", *TOOLS):
+        if name not in ("up", "prepare", "ros2", *TOOLS):
             add_common_arguments(p, SECTIONS[name])
     return parser
 
@@ -172,6 +179,8 @@ def _runner(command: str) -> Callable:
         from swarmmap.services.learner.service import run
     elif command == "observer":
         from swarmmap.services.observer import run
+    elif command == "ros2":
+        from swarmmap.services.ros2 import run
     else:
         raise ValueError(command)
     return run
@@ -206,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         setup_logging("warning", "status")
         return run_status(args, stop)
     try:
-        cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command in ("up", "prepare") else None)
+        cfg: RunConfig = config_from_args(args, preset=DEFAULT_PRESET if args.command in ("up", "prepare", "ros2") else None)
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)
         return 2

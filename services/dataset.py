@@ -65,7 +65,8 @@ def describe(team: Team) -> None:
                  "".join(f"; {n}" for n in log_.notes))
     for i, r in enumerate(team.robots):
         travelled = float(np.linalg.norm(np.diff(r.log.poses[r.train, :2], axis=0), axis=1).sum())
-        log.info("robot %d: scans %d-%d of %s (%d trained on, %d held out), %.1f m driven", i, r.train[0], r.train[-1],
+        segment = np.concatenate([r.train, r.held_out])
+        log.info("robot %d: scans %d-%d of %s (%d trained on, %d held out), %.1f m driven", i, segment.min(), segment.max(),
                  r.log.source, len(r.train), len(r.held_out), travelled)
     h, w = team.shape
     ref = team.reference

@@ -101,7 +101,8 @@ def prepare(cfg: RunConfig) -> RunConfig:
         cfg = cfg.model_copy(update={"lidar": cfg.lidar.model_copy(update={"record": record})})
     if cfg.up.observer:
         obs = cfg.observer.model_copy(update={"save": cfg.observer.save or run_dir / "recording.rrd",
-                                              "spawn": cfg.observer.spawn or cfg.up.viewer})
+                                              "spawn": cfg.observer.spawn or cfg.up.viewer,
+                                              "mcap": cfg.observer.mcap or (run_dir / "bag" if cfg.up.mcap else None)})
         wait_for = cfg.world.wait_for + ([] if "observer" in cfg.world.wait_for else ["observer"])
         cfg = cfg.model_copy(update={"observer": obs, "world": cfg.world.model_copy(update={"wait_for": wait_for})})
     return cfg

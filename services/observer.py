@@ -56,6 +56,7 @@ from swarmmap.shared.models import StochasticNet, pick_device, set_flat
 from swarmmap.shared.networks import build_network, has_std
 from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
 from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.rosout import MapSink, McapBag
 from swarmmap.shared.rundir import unused_path
 from swarmmap.shared.runtime import die_with_parent
 
@@ -174,8 +175,9 @@ class Snapshot:
 class Observer:
     """Message intake (Zenoh callback threads) and map evaluation (:meth:`map_loop`), one recording."""
 
-    def __init__(self, cfg: RunConfig, rec: rr.RecordingStream, device: torch.device):
+    def __init__(self, cfg: RunConfig, rec: rr.RecordingStream, device: torch.device, sinks: list[MapSink] | None = None):
         self.cfg, self.rec, self.device = cfg, rec, device
+        self.sinks = sinks or []  # where the maps go besides Rerun: a rosbag2, ROS 2 topics
         self.s = cfg.observer
         self.map_every = self.s.map_every or cfg.report_every()
         self.last_round = cfg.rounds()
@@ -211,6 +213,10 @@ class Observer:
         self.layout = StateLayout.of(model, self.cfg.state_copies())  # DSGT's State carries its tracker too, RAMEN's its counts
         self.model = model
         self.rec.log("world/plan", rr.Image(colorize(self.grid.grid.astype(float), OCCUPANCY_CMAP, 1.0)), static=True)
+        unknown = self.grid.unknown if self.grid.unknown is not None else np.zeros(self.grid.grid.shape, bool)
+        trinary = np.where(unknown, 2, self.grid.grid).astype(np.uint8)[: self.shape[0], : self.shape[1]]
+        for sink in self.sinks:
+            sink.world(self.s.map_resolution_m, self.grid.origin, self.shape, trinary)
         positions = world.positions.numpy() if world.positions is not None else None
         try:
             self.graph = run_graph(self.cfg.graph(), self.cfg.robots, positions)
@@ -247,6 +253,8 @@ class Observer:
         self.log_trajectory(i, x, y)
         self.rec.log(f"world/robots/{i}/scan", rr.Points2D(self.pixel(hits), radii=1.5, colors=c))
         self.log_graph()
+        for sink in self.sinks:
+            sink.scan(i, scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit, scan.max_range)
 
     def log_trajectory(self, i: int, x: float, y: float) -> None:
         """Log the newest piece of robot ``i``'s trajectory (and a piece it finished, for good)."""
@@ -306,8 +314,11 @@ class Observer:
         h, w = self.shape
         self.rec.set_time("round", sequence=msg.round)
         self.rec.log(f"maps/mean/robot-{msg.sender}", rr.Image(colorize(mean.reshape(h, w), OCCUPANCY_CMAP, 1.0)))
-        if isinstance(self.model, StochasticNet):
+        stochastic = isinstance(self.model, StochasticNet)
+        if stochastic:
             self.rec.log(f"maps/std/robot-{msg.sender}", rr.Image(colorize(std.reshape(h, w), STD_CMAP, self.s.std_max)))
+        for sink in self.sinks:
+            sink.maps(msg.sender, mean.reshape(h, w), std.reshape(h, w) if stochastic else None)
         dt = time.perf_counter() - t0
         self.rec.log("observer/map_time_s", rr.Scalars(dt))
         return dt
@@ -368,7 +379,26 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
 def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, device: torch.device) -> int:
     """Watch the run until it is over, then write observer.json; returns the exit status."""
     keys = Keys(cfg.key_prefix, cfg.run_id)
-    obs = Observer(cfg, rec, device)
+    sinks: list[MapSink] = []
+    try:
+        if cfg.observer.mcap is not None:
+            sinks.append(McapBag(unused_path(cfg.observer.mcap), cfg.observer.std_max))  # a resumed run keeps its earlier bag
+            log.info("writing the run as a rosbag2 (MCAP) to %s", sinks[-1].path)
+        if (namespaces := cfg.ros2_maps()) is not None:
+            from swarmmap.services.ros2 import Ros2Maps
+
+            sinks.append(Ros2Maps(namespaces, cfg.observer.std_max))
+            log.info("publishing the maps to ROS 2: %s and /map (nav_msgs/OccupancyGrid, transient local)",
+                     ", ".join(f"/{ns}/map" for ns in namespaces))
+        return watch(cfg, keys, Observer(cfg, rec, device, sinks), stop)
+    finally:
+        for sink in sinks:
+            sink.close()  # (closed already when the run ended well)
+
+
+def watch(cfg: RunConfig, keys: Keys, obs: Observer, stop: threading.Event) -> int:
+    """Observe the run through ``obs`` until it is over; returns the exit status."""
+    rec = obs.rec
     mapping_done = threading.Event()
     worker = threading.Thread(target=obs.map_loop, args=(mapping_done,), name="maps")
     with Bus.open(cfg.zenoh, keys, "observer", 0) as bus:
@@ -392,6 +422,10 @@ def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, devi
     worker.join()  # maps the States still waiting (the final ones) before the recording closes
     rec.flush()
     rep = obs.report()
+    for sink in obs.sinks:
+        counts = sink.close()
+        rep[sink.name] = {"path": str(sink.path), "messages": counts}
+        log.info("%s %s: %d messages on %d topics", sink.name, sink.path, sum(counts.values()), len(counts))
     log.info("observer done: %d maps, %.3f s per map on average (max %.3f s), %d of %d States skipped",
              rep["maps"], rep["map_time_mean_s"], rep["map_time_max_s"], rep["states_skipped"], rep["states_received"])
     if cfg.run_dir is not None:

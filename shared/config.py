@@ -58,7 +58,7 @@ def parse_shape(value: Any) -> list[int]:
 
 ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
 # learner.consensus: the consensus rules (services/learner/consensus/, whose registry names the same)
-ConsensusKind = Literal["dinno", "ramen", "sigma"]
+ConsensusKind = Literal["dinno", "ramen", "sigma", "dgvi"]
 # learner.algorithm: the learning rules (services/learner/registry.py names the same)
 AlgorithmKind = Literal["dinno", "dsgd", "dsgt", "individual", "centralized"]
 MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
@@ -271,7 +271,8 @@ class LearnerSettings(Section):
                                                    "dropped (Algorithm 1 resends what an honest neighbour lost)")
     consensus: ConsensusKind = Field(
         "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
-                             "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn)")
+                             "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn), "
+                             "dgvi (DGVI's precision-weighted pool of the neighbourhood's Gaussians; model bnn)")
     robust: bool = Field(
         True, description="a member that lies can neither pass for honest nor pull the team far: each round's "
                           "neighbour States are judged together, block by block, against the round's honest spread; "
@@ -334,9 +335,9 @@ class LearnerSettings(Section):
             raise ValueError(f"model_shape must start with 2, end with 1 and have a hidden layer, got {self.model_shape}")
         if any(w < 1 for w in self.model_shape):
             raise ValueError("model_shape widths must be positive")
-        if self.consensus == "sigma" and self.model != "bnn":
-            raise ValueError("consensus sigma weighs by the posterior's sigma: it needs model bnn (a FourierNet has no "
-                             "posterior; ramen works with either)")
+        if self.consensus in ("sigma", "dgvi") and self.model != "bnn":
+            raise ValueError(f"consensus {self.consensus} weighs by the posterior's sigma: it needs model bnn (a FourierNet "
+                             "has no posterior; ramen works with either)")
         if self.unseen_weight > 0 and self.model != "bnn":
             raise ValueError("unseen_weight (the noise-contrastive prior on unseen space) shapes a Bayesian network's "
                              "weight draws: it needs model bnn")
@@ -363,6 +364,8 @@ class ObserverSettings(Section):
     std_max: float = Field(0.25, gt=0, le=0.5, description="std that gets the top colour of the std colormap")
     scan_every: int = Field(1, ge=1, description="log every n-th scan of each robot (poses, trajectory, scan points)")
     save: Path | None = Field(None, description="write the recording to this .rrd file (swarmmap up: RUN_DIR/recording.rrd)")
+    mcap: Path | None = Field(None, description="also write the run as a rosbag2 folder in MCAP here: every map as a "
+                                                "nav_msgs/OccupancyGrid, the scans, poses and tf (docs/datasets.md#a-run-as-a-rosbag2)")
     spawn: bool = Field(False, description="start a local Rerun viewer and stream to it")
     connect: str | None = Field(None, description="stream to a running viewer at this gRPC URL, "
                                                   "e.g. rerun+http://127.0.0.1:9876/proxy")
@@ -424,6 +427,7 @@ class UpSettings(Section):
     observer: bool = Field(True, description="start the Rerun observer (it saves RUN_DIR/recording.rrd unless observer.save "
                                                           "says otherwise)")
     viewer: bool = Field(False, description="also open a local Rerun viewer (observer.spawn)")
+    mcap: bool = Field(False, description="the observer also writes the run as a rosbag2 in MCAP, RUN_DIR/bag (observer.mcap)")
     stop_grace_s: float = Field(10.0, gt=0, description="how long services get to stop on SIGTERM before SIGKILL")
     observer_grace_s: float = Field(120.0, gt=0, description="how long the observer gets to map the final States and close "
                                                              "its recording once the learners are done")
@@ -434,6 +438,34 @@ class UpSettings(Section):
                                                "(it resumes from its checkpoint and rejoins); 0: a crash ends the run")
     resume: bool = Field(False, description="go on with the interrupted run in run_dir (its checkpoints, metrics and logs); "
                                             "without it a run directory that holds a run is refused")
+
+
+class Ros2Settings(Section):
+    """``swarmmap ros2``: a team of ROS 2 robots, their scans heard on ROS 2, their maps published there."""
+
+    namespaces: list[str] = Field(default_factory=list, description="one robot per namespace: its sensor_msgs/LaserScan on "
+                                  "/<namespace>/<scan_topic>, nav_msgs/Odometry on /<namespace>/<odom_topic>, maps published "
+                                  "on /<namespace>/map (and map_std)")
+    scan_topic: str = Field("scan", description="each robot's LaserScan topic under its namespace")
+    odom_topic: str = Field("odom", description="each robot's Odometry topic under its namespace (the LiDAR's pose)")
+    idle_s: float = Field(5.0, gt=0, description="the robots' input is over once every robot has sent scans and none came "
+                                                 "for this long")
+    wait_s: float = Field(600.0, gt=0, description="how long to wait for every robot's first scan before refusing")
+    publish: bool = Field(False, description="the observer publishes every robot's maps and the team's /map on ROS 2 "
+                                             "(swarmmap ros2 sets it)")
+
+    @field_validator("namespaces")
+    @classmethod
+    def _names(cls, value: list[str]) -> list[str]:
+        names = [v.strip("/") for v in value]
+        bad = [v for v in names if not v or not all(part.replace("_", "a").isalnum() and not part[0].isdigit()
+                                                       for part in v.split("/"))]
+        if bad:
+            raise ValueError(f"{bad}: a ROS namespace is names of letters, digits and _ (not starting with a digit), "
+                             "joined by /")
+        if len(set(names)) < len(names):
+            raise ValueError("namespaces must differ: one robot each")
+        return names
 
 
 class RunConfig(Section):
@@ -456,6 +488,7 @@ class RunConfig(Section):
     recorder: RecorderSettings = Field(default_factory=RecorderSettings)
     faults: FaultSettings = Field(default_factory=FaultSettings)
     up: UpSettings = Field(default_factory=UpSettings)
+    ros2: Ros2Settings = Field(default_factory=Ros2Settings)
 
     @model_validator(mode="after")
     def _attackers(self) -> RunConfig:
@@ -529,6 +562,12 @@ class RunConfig(Section):
     def plan(self) -> str:
         """The run's floor plan (``world.floorplan``), as recordings name it."""
         return self.world.floorplan
+
+    def ros2_maps(self) -> list[str] | None:
+        """The ROS 2 namespace of every robot's maps when the observer publishes them, else None."""
+        if not self.ros2.publish:
+            return None
+        return self.ros2.namespaces or [f"robot_{i}" for i in range(self.robots)]
 
     def consumers_wait_s(self) -> float:
         """How long a source of scans waits for their consumers before it starts anyway."""
@@ -860,7 +899,8 @@ def validate_config(doc: dict[str, Any]) -> RunConfig:
 def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = None,
             preset: str | None = None, environ: dict[str, str] | None = None) -> RunConfig:
     """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict);
-    a run on a dataset (``world.dataset``) takes :data:`DATASET_DEFAULTS` over its preset."""
+    a run on a dataset (``world.dataset``, or ROS 2 robots: ``ros2.namespaces``) takes
+    :data:`DATASET_DEFAULTS` over its preset."""
     file_doc = read_config_file(config_file) if config_file else {}
     env_doc = env_overrides(environ)
     cli = cli or {}
@@ -875,7 +915,8 @@ def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = Non
     given: dict[str, Any] = {}
     for layer in (file_doc, env_doc, cli):
         given = deep_merge(given, layer)
-    if (given.get("world") or {}).get("dataset") or (merged.get("world") or {}).get("dataset"):
+    if any((layer.get(section) or {}).get(name) for layer in (given, merged)
+           for section, name in (("world", "dataset"), ("ros2", "namespaces"))):  # a run on real data
         merged = deep_merge(merged, DATASET_DEFAULTS)
     return validate_config(deep_merge(merged, given))
 

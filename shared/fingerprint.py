@@ -39,13 +39,15 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
                 "resend_after_s", "inbox_limit", "torch_threads", "compute_slots", "device"),
     # the observer only watches
     "observer": ("map_resolution_m", "mc_samples", "map_every", "std_max", "scan_every", "save", "spawn", "connect",
-                 "serve_web", "web_port", "grpc_port", "torch_threads", "device", "map_dtype", "bind"),
+                 "serve_web", "web_port", "grpc_port", "torch_threads", "device", "map_dtype", "bind", "mcap"),
     # when the recorder ends a run
     "recorder": ("start_timeout_s", "linger_s", "rejoin_timeout_s", "stall_timeout_s"),
     "faults": (),
     # the launcher (a replay's settings are the world's and lidar's fields it sets)
     "up": ("record", "replay", "observer", "viewer", "stop_grace_s", "observer_grace_s", "learner_grace_s", "start_timeout_s",
-           "restarts", "resume"),
+           "restarts", "resume", "mcap"),
+    # where ROS 2 robots' scans are heard and their maps published (the scans themselves are the dataset's)
+    "ros2": ("namespaces", "scan_topic", "odom_topic", "idle_s", "wait_s", "publish"),
 }
 
 # Fields that change what a run computes: its team, its plan and sensor, training, faults.

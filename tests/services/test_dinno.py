@@ -253,6 +253,30 @@ def test_sigma_needs_a_bayesian_network_and_dinno():
         LearnerSettings(graph="disk", data="online")
 
 
+def test_dgvi_pools_the_neighbourhoods_gaussians_by_precision():
+    from swarmmap.services.learner.consensus.dgvi import pooled, softplus_inverse
+
+    model = network(bnn_settings(consensus="dgvi"))
+    mu_at, rho_at = sigma_pairs(model)
+    th_i = torch.nn.utils.parameters_to_vector(model.parameters()).detach().double()
+    th_j = th_i + 1.0
+    th_j[rho_at] = softplus_inverse(F.softplus(th_i[rho_at]) / 2)  # the neighbour: sigma halved, precision x4
+    z = pooled(th_i, th_j[None], mu_at, rho_at)
+    # omega_bar = (w + 4 w) / 2, mu_bar = (w mu_i + 4 w mu_j) / (5 w): 4/5 of the way to the surer one
+    torch.testing.assert_close(z[mu_at], th_i[mu_at] + 0.8)
+    torch.testing.assert_close(F.softplus(z[rho_at]), F.softplus(th_i[rho_at]) * (2 / 5) ** 0.5)
+    others = torch.ones_like(th_i, dtype=torch.bool)
+    others[mu_at] = False
+    others[rho_at] = False
+    torch.testing.assert_close(z[others], th_i[others] + 0.5)  # no posterior: the plain mean
+    torch.testing.assert_close(pooled(th_i, th_i[None], mu_at, rho_at), th_i)  # equal Gaussians pool to themselves
+    s = bnn_settings(consensus="dgvi")
+    dn, _ = run_inproc(s, rounds=8)
+    assert all(not n.duals or all(bool((d == 0).all()) for d in n.duals.values()) for n in dn)  # DGVI keeps no duals
+    with pytest.raises(ValueError, match="consensus dgvi weighs by the posterior's sigma: it needs model bnn"):
+        LearnerSettings(consensus="dgvi")
+
+
 def test_ramen_weights_follow_ramens_scaling_and_reduce_to_dinno_for_equal_counts():
     th_i, th_j = torch.zeros(4), torch.tensor([[1.0, 1.0, 1.0, 1.0]])
     z, a = ramen_targets(th_i, torch.full((4,), 5.0), th_j, torch.full((1, 4), 5.0))

@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarmmap.shared.datasets import (BagTopics, DatasetError, LaserLog, carmen_angles, make_team, read_log,
-                                      split_team, write_rosbag)
+from swarmmap.shared.datasets import BagTopics, DatasetError, LaserLog, carmen_angles, make_team, read_log, split_team, write_rosbag
 from swarmmap.shared.logodds import build_logodds, logit
 from tests.conftest import KIT_DATA
 

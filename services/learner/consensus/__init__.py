@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 
 from swarmmap.services.learner.consensus.base import ConsensusRule
+from swarmmap.services.learner.consensus.dgvi import DgviRule
 from swarmmap.services.learner.consensus.dinno import DinnoRule
 from swarmmap.services.learner.consensus.ramen import RamenRule
 from swarmmap.services.learner.consensus.sigma import SigmaRule
@@ -18,6 +19,7 @@ RULES = {
     "dinno": lambda model, s: DinnoRule(),
     "ramen": lambda model, s: RamenRule(sum(p.numel() for p in model.parameters()), next(model.parameters()).device),
     "sigma": lambda model, s: SigmaRule(model, s.min_weight, s.memory_rounds, s.max_weight),
+    "dgvi": lambda model, s: DgviRule(model),
 }
 
 

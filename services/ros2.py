@@ -1,0 +1,192 @@
+"""``swarmmap ros2``: a team of ROS 2 robots. It hears their scans on ROS 2 and publishes their maps there.
+
+Run-book: ``swarmmap ros2 --namespaces robot_a robot_b [up's options]`` (needs rclpy:
+``pip install 'swarmmap[ros2]'``, or a sourced ROS 2 install).
+
+1. An rclpy node subscribes, for every namespace, to ``/<ns>/scan`` (``sensor_msgs/LaserScan``)
+   and ``/<ns>/odom`` (``nav_msgs/Odometry``: the LiDAR's pose), best effort (a sensor's QoS; a
+   reliable publisher matches too). Their input is over once every robot has sent scans and none
+   came for ``ros2.idle_s``; a robot that sent nothing within ``ros2.wait_s`` is refused by name.
+2. Each robot's scans, at their poses, are kept as a rosbag2 in the run directory
+   (``RUN_DIR/input/<ns>.mcap``: what the team learned from, replayable with ``--dataset``).
+3. The team runs as ``swarmmap up --dataset`` on them, one robot per namespace, and its observer
+   publishes, at every evaluation, each robot's mean map on ``/<ns>/map``, its std on
+   ``/<ns>/map_std`` (a model with one; ``100 x std / observer.std_max``) and the team's on
+   ``/map``: ``nav_msgs/OccupancyGrid``, frame ``map``, reliable and transient local (a node that
+   starts later gets the newest map), 0-100.
+
+Training starts when the input is over (the learners train on their data offline, as DiNNO's
+offline mode does); the maps are refreshed as it goes on.
+"""
+
+from __future__ import annotations
+
+import array
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from swarmmap.shared.config import ConfigError, RunConfig
+from swarmmap.shared.datasets import BagMessages, BagTopics, DatasetError, messages_log, write_rosbag
+from swarmmap.shared.rosout import grid_values, team_map
+
+log = logging.getLogger("ros2")
+
+
+def need_rclpy():
+    """rclpy, or a ConfigError saying how to get it."""
+    try:
+        import rclpy
+
+        return rclpy
+    except ImportError:
+        raise ConfigError("config error:\n  ros2: needs rclpy: pip install 'swarmmap[ros2]' (rclpy with Fast DDS from PyPI), "
+                          "or source a ROS 2 install") from None
+
+
+class Ros2Maps:
+    """The observer's ROS 2 publisher of every robot's maps and the team's (a :class:`MapSink`)."""
+
+    name = "ros2"
+
+    def __init__(self, namespaces: list[str], std_max: float):
+        rclpy = need_rclpy()
+        from nav_msgs.msg import OccupancyGrid
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        self.rclpy, self.Grid, self.std_max = rclpy, OccupancyGrid, std_max
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("swarmmap_maps", context=self.context)
+        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.path = ", ".join(f"/{ns}" for ns in namespaces)
+        self.pubs = {i: (self.node.create_publisher(OccupancyGrid, f"/{ns}/map", qos),
+                         self.node.create_publisher(OccupancyGrid, f"/{ns}/map_std", qos)) for i, ns in enumerate(namespaces)}
+        self.topics = {i: (f"/{ns}/map", f"/{ns}/map_std") for i, ns in enumerate(namespaces)}
+        self.team_pub = self.node.create_publisher(OccupancyGrid, "/map", qos)
+        self.info: tuple | None = None
+        self.team: dict[int, np.ndarray] = {}
+        self.counts: dict[str, int] = {}
+        self.lock = threading.Lock()
+        self.closed = False
+
+    def world(self, resolution, origin, shape, reference) -> None:
+        self.info = (float(resolution), (float(origin[0]), float(origin[1])), tuple(int(v) for v in shape))
+
+    def scan(self, robot, pose, angles, ranges, hit, max_range) -> None:
+        pass  # the robots' scans are on ROS 2 already
+
+    def _publish(self, pub, topic: str, data: np.ndarray) -> None:
+        from geometry_msgs.msg import Pose
+        from nav_msgs.msg import MapMetaData
+
+        res, (ox, oy), (h, w) = self.info
+        msg = self.Grid()
+        now = self.node.get_clock().now().to_msg()
+        msg.header.stamp, msg.header.frame_id = now, "map"
+        origin = Pose()
+        origin.position.x, origin.position.y, origin.orientation.w = ox, oy, 1.0
+        msg.info = MapMetaData(map_load_time=now, resolution=res, width=w, height=h, origin=origin)
+        msg.data = array.array("b", data.astype(np.int8).tobytes())
+        pub.publish(msg)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def maps(self, robot: int, mean: np.ndarray, std: np.ndarray | None) -> None:
+        with self.lock:
+            if self.closed or self.info is None or robot not in self.pubs:
+                return
+            self._publish(self.pubs[robot][0], self.topics[robot][0], grid_values(mean))
+            if std is not None:
+                self._publish(self.pubs[robot][1], self.topics[robot][1], grid_values(std, self.std_max))
+            self.team[robot] = mean
+            self._publish(self.team_pub, "/map", grid_values(team_map(self.team)))
+
+    def close(self) -> dict[str, int]:
+        with self.lock:
+            if not self.closed:
+                self.closed = True
+                self.node.destroy_node()
+                self.rclpy.shutdown(context=self.context)
+            return dict(self.counts)
+
+
+def hear(cfg: RunConfig, stop: threading.Event) -> dict[str, BagMessages]:
+    """Every robot's scans and odometry from ROS 2, until its input is over (see the module)."""
+    rclpy = need_rclpy()
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import LaserScan
+
+    s = cfg.ros2
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("swarmmap_input", context=context)
+    qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+    got = {ns: BagMessages() for ns in s.namespaces}
+    last: dict[str, float] = {}
+
+    def on_scan(msg, ns: str) -> None:
+        got[ns].add_scan(msg)
+        last[ns] = time.monotonic()
+
+    for ns in s.namespaces:
+        node.create_subscription(LaserScan, f"/{ns}/{s.scan_topic}", lambda m, ns=ns: on_scan(m, ns), qos)
+        node.create_subscription(Odometry, f"/{ns}/{s.odom_topic}", lambda m, ns=ns: got[ns].add_odom(m), qos)
+    log.info("listening on ROS 2 for %s", ", ".join(f"/{ns}/{s.scan_topic} + /{ns}/{s.odom_topic}" for ns in s.namespaces))
+    start, said = time.monotonic(), 0.0
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+            now = time.monotonic()
+            silent = [ns for ns in s.namespaces if ns not in last]
+            if not silent and now - max(last.values()) >= s.idle_s:
+                break
+            if silent and now - start > s.wait_s:
+                raise ConfigError(f"ros2: no LaserScan from {', '.join(f'/{ns}/{s.scan_topic}' for ns in silent)} within "
+                                  f"{s.wait_s:.0f} s (ros2.wait_s); is the robot publishing, in this ROS_DOMAIN_ID?")
+            if now - said >= 10:
+                said = now
+                log.info("heard so far: %s", ", ".join(f"{ns} {len(got[ns].scans)} scans" for ns in s.namespaces))
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    return got
+
+
+def run(cfg: RunConfig, stop: threading.Event) -> int:
+    """Hear the robots, keep their input, run the team on it publishing its maps; the exit status."""
+    from swarmmap.services import launcher
+
+    s = cfg.ros2
+    if not s.namespaces:
+        raise ConfigError("config error:\n  ros2.namespaces: name the robots' namespaces, e.g. --namespaces robot_a robot_b")
+    need_rclpy()
+    cfg = launcher.prepare(cfg.model_copy(update={"robots": len(s.namespaces)}))
+    if (why := launcher.run_dir_problem(cfg)) is not None:
+        raise ConfigError(f"config error:\n  run_dir: {why}")
+    inputs = cfg.run_dir / "input"
+    if inputs.exists() and any(inputs.iterdir()):
+        raise ConfigError(f"config error:\n  run_dir: {inputs} holds the input of an earlier run, which is never overwritten; "
+                          "choose another run directory (or replay it: swarmmap up --dataset " + f"{inputs}/*.mcap)")
+    got = hear(cfg, stop)
+    if stop.is_set():
+        return 130
+    paths = []
+    for ns, messages in got.items():
+        try:
+            robot_log = messages_log(f"ROS 2 /{ns}", messages, True, BagTopics(f"/{ns}/{s.scan_topic}", f"/{ns}/{s.odom_topic}"))
+        except DatasetError as exc:
+            raise ConfigError(f"ros2: robot {ns}: {exc}") from None
+        path = write_rosbag(robot_log, inputs / ns.replace("/", "_"), scan_topic="/scan", odom_topic="/odom")
+        paths.append(str(next(Path(path).glob("*.mcap"))))
+        log.info("robot %s: %d scans of %d beams kept in %s", ns, len(robot_log), len(robot_log.angles), path)
+    world = cfg.world.model_copy(update={"dataset": paths, "dataset_pose": "odom"})
+    cfg = cfg.model_copy(update={"world": world, "ros2": s.model_copy(update={"publish": True}),
+                                 "up": cfg.up.model_copy(update={"observer": True})})
+    return launcher.run(cfg, stop)
