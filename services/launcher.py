@@ -94,6 +94,9 @@ def prepare(cfg: RunConfig) -> RunConfig:
     secrets = None if cfg.zenoh.insecure else (cfg.zenoh.secrets or run_dir / "secrets").resolve()
     cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir,
                                  "zenoh": cfg.zenoh.model_copy(update={"secrets": secrets})})
+    if cfg.world.dataset:  # every service finds the logs wherever it starts (SLURM tasks, a resumed run)
+        world = cfg.world.model_copy(update={"dataset": [str(Path(p).expanduser().resolve()) for p in cfg.world.dataset]})
+        cfg = cfg.model_copy(update={"world": world})
     if cfg.up.replay is not None:
         cfg = replay_config(cfg, cfg.up.replay)
     if cfg.up.record is not None:

@@ -7,7 +7,8 @@ on the same run id is refused, the finished run left as it was, and under anothe
 five robots (replicas of one service that claim their ids, which a restarted container keeps)
 and returns the recorder's status; a run directory holding an unfinished run with other
 settings is refused, resumed or not, and left as it was, and no container of the refused run
-stays up. The image also builds behind a TLS-intercepting proxy when given
+stays up. A run on a real LiDAR log reads it from the data folder (SWARMMAP_DATA, mounted
+read-only in start and world only). The image also builds behind a TLS-intercepting proxy when given
 the site's CA."""
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ import subprocess
 import tarfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from tests.conftest import REPO, SWARMMAP, clean_env, free_port, recording_entities, wait_until
+from tests.conftest import KIT_DATA, REPO, SWARMMAP, clean_env, free_port, recording_entities, wait_until
 from tests.deploy.conftest import BASE_IMAGE, build_context, compose_command
 
 pytestmark = pytest.mark.deploy
@@ -126,9 +128,10 @@ def assert_each_container_holds_its_own_key_only(clone: Path, runs: Path) -> Non
         where = {m["Destination"]: m.get("Source", "") for m in mounts}
         keys = private_keys(container, "/tmp/swarmmap-credentials")
         if service == "start":
-            assert keys == [] and set(where) == {"/runs", "/compose", "/etc/swarmmap/compose.yaml"}, (where, keys)
+            assert keys == [] and set(where) == {"/runs", "/compose", "/etc/swarmmap/compose.yaml", "/data"}, (where, keys)
             continue
-        assert set(where) == {"/runs/compose", "/compose"} and Path(where["/runs/compose"]) == runs / "compose", where
+        data = {"/data"} if service == "world" else set()  # the world alone reads a log or plan file
+        assert set(where) == {"/runs/compose", "/compose"} | data and Path(where["/runs/compose"]) == runs / "compose", where
         assert len(keys) == 1 and keys[0].endswith("@compose/key.pem"), f"{service} {container} holds {keys}"
         identity = keys[0].split("/")[-2]
         assert identity.split("-")[0] == service and identity not in held, (identity, held)
@@ -177,6 +180,23 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     finally:
         subprocess.run(["docker", "kill", container], capture_output=True, timeout=60)
     assert logged_robots(container) == served[container] * 2
+
+
+@pytest.mark.timeout(1800)
+def test_a_run_on_a_real_log_reads_it_from_the_data_folder(clone):
+    intel = KIT_DATA / "carmen" / "intel-corrected.log.gz"
+    if not intel.exists():
+        pytest.skip("kit data ../shared/data/carmen not present")
+    env = {"SWARMMAP_RUN_ID": "intel", "SWARMMAP_DATA": str(intel.parent), "SWARMMAP_LEARNER__ROUNDS": "20",
+           "SWARMMAP_WORLD__DATASET": f"/data/{intel.name}"}
+    up = compose(clone, "up", "--exit-code-from", "recorder", env=env)
+    assert up.returncode == 0, output(up, clone, env)
+    run_dir = clone / "runs" / "intel"
+    assert_whole_run(run_dir, robots=3, rounds=20)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["reference"]["kind"] == "log-odds grid of the training scans"
+    with np.load(run_dir / "groundtruth.npz") as gt:
+        assert "reference" in gt.files and len(gt["val_labels"]) > 1000  # the log's held-out scans
 
 
 @pytest.mark.timeout(1800)
