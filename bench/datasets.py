@@ -13,16 +13,15 @@ robot sent; then the log-odds grid's on the same points, and a Markdown table of
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.conftest
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
+
+from common import up_run  # noqa: E402
 
 from swarmmap.services.experiments.score import reference_row, score_run  # noqa: E402
-from tests.conftest import KIT_DATA, SWARMMAP, clean_env  # noqa: E402
+from tests.conftest import KIT_DATA  # noqa: E402
 
 CASES = {  # run folder: (case, options)
     "sigma": ("BNN, sigma consensus", ["--set", "learner.consensus=sigma"]),
@@ -30,16 +29,6 @@ CASES = {  # run folder: (case, options)
     "dgvi": ("BNN, DGVI's consensus", ["--set", "learner.consensus=dgvi"]),
     "centralized": ("BNN, one robot with all the data", ["--algorithm", "centralized", "--transport", "inproc"]),
 }
-
-
-def run(run_dir: Path, args: list[str]) -> dict:
-    if not (run_dir / "summary.json").exists():
-        t0 = time.monotonic()
-        with open(f"{run_dir}.log", "w") as out:
-            subprocess.run([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], stdout=out, stderr=subprocess.STDOUT,
-                           env=clean_env(), timeout=4 * 3600)
-        print(f"  ({run_dir.name}: {time.monotonic() - t0:.0f} s)", flush=True)
-    return json.loads((run_dir / "summary.json").read_text())
 
 
 def main() -> int:
@@ -56,7 +45,7 @@ def main() -> int:
     rows, name = [], a.log.name.split(".")[0]
     for folder, (case, extra) in CASES.items():
         run_dir = a.out / folder
-        summary = run(run_dir, base + extra)
+        summary = up_run(run_dir, base + extra)
         if not summary["ok"]:
             print(f"{case}: the run failed: {summary['reason']}", flush=True)
             continue

@@ -16,28 +16,19 @@ kept in ``--out`` and reused when their summary is there.
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.conftest
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
 
-from tests.conftest import SWARMMAP, clean_env  # noqa: E402
+from common import up_run  # noqa: E402
 
 ATTACKS = ["ratchet", "signflip", "scale", "noise", "stall", "equivocate"]
 
 
 def run(run_dir: Path, args: list[str]) -> tuple[dict, float]:
     """The run's summary (running it unless it is there already) and its wall time."""
-    if not (run_dir / "summary.json").exists():
-        t0 = time.monotonic()
-        with open(f"{run_dir}.log", "w") as out:
-            subprocess.run([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], stdout=out, stderr=subprocess.STDOUT,
-                           env=clean_env(), timeout=4 * 3600)
-        print(f"  ({run_dir.name}: {time.monotonic() - t0:.0f} s)", flush=True)
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = up_run(run_dir, args)
     return summary, float(summary.get("wall_time_s") or 0.0)
 
 

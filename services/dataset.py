@@ -21,12 +21,11 @@ import time
 
 import numpy as np
 
-from swarmmap.services.world import wait_for_consumers
-from swarmmap.shared.bus import Bus
+from swarmmap.services.world import serving
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.datasets import BagTopics, DatasetError, Team, make_team, read_log
 from swarmmap.shared.logodds import bce
-from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
+from swarmmap.shared.protocol import Scan, Tensor, WorldMap, encode
 
 log = logging.getLogger("world")
 
@@ -88,17 +87,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     payload = encode(world_map_message(cfg, team))
     # Every robot's scans in the time order of its own segment (each starts at 0).
     events = sorted((team.time(i, k), i, k) for i, r in enumerate(team.robots) for k in range(len(r.train)))
-    keys = Keys(cfg.key_prefix, cfg.run_id)
-    with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
-        bus.end_with_run(stop)
-        bus.serve(keys.world_map(), lambda: payload)
-        pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
-        bus.announce()
-        if not w.drive:
-            log.info("serving the map only (world.drive is off)")
-            stop.wait()
-            return 0
-        if not wait_for_consumers(cfg, bus, stop):
+    with serving(cfg, payload, stop) as pubs:
+        if pubs is None:
             return 0
         start = time.monotonic()
         sent = 0

@@ -19,6 +19,8 @@ import logging
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -201,6 +203,25 @@ def wait_for_consumers(cfg: RunConfig, bus: Bus, stop: threading.Event) -> bool:
     return True
 
 
+@contextmanager
+def serving(cfg: RunConfig, payload: bytes, stop: threading.Event) -> Iterator[list | None]:
+    """The world's session: ``payload`` (a WorldMap) served on ``world/map``, a scan publisher per
+    robot, announced; yields the publishers once the consumers are alive, or None when the world
+    must not drive (``world.drive`` off: after the run is over; or stopped while waiting)."""
+    keys = Keys(cfg.key_prefix, cfg.run_id)
+    with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
+        bus.end_with_run(stop)
+        bus.serve(keys.world_map(), lambda: payload)
+        pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
+        bus.announce()
+        if not cfg.world.drive:
+            log.info("serving the map only (world.drive is off)")
+            stop.wait()
+            yield None
+        else:
+            yield pubs if wait_for_consumers(cfg, bus, stop) else None
+
+
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """The world service's main loop; returns the process exit status."""
     w = cfg.world
@@ -231,17 +252,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
              ", ".join(f"{100 * coverage([p], grid, w.lidar_max_range_m):.0f}%" for p in paths),
              100 * coverage(paths, grid, w.lidar_max_range_m))
     try:
-        keys = Keys(cfg.key_prefix, cfg.run_id)
-        with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
-            bus.end_with_run(stop)
-            bus.serve(keys.world_map(), lambda: map_payload)
-            pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
-            bus.announce()
-            if not w.drive:
-                log.info("serving the map only (world.drive is off)")
-                stop.wait()
-                return 0
-            if not wait_for_consumers(cfg, bus, stop):
+        with serving(cfg, map_payload, stop) as pubs:
+            if pubs is None:
                 return 0
             period = 1.0 / w.lidar_rate_hz
             next_scan = 0.0

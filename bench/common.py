@@ -1,0 +1,25 @@
+"""What the benches that launch whole runs share: one ``swarmmap up``, kept and reused."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.conftest
+
+from tests.conftest import SWARMMAP, clean_env  # noqa: E402
+
+
+def up_run(run_dir: Path, args: list[str]) -> dict:
+    """The summary of ``swarmmap up --run-dir RUN_DIR ARGS``, running it unless its summary is
+    there already (its console goes to ``RUN_DIR.log``)."""
+    if not (run_dir / "summary.json").exists():
+        t0 = time.monotonic()
+        with open(f"{run_dir}.log", "w") as out:
+            subprocess.run([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], stdout=out, stderr=subprocess.STDOUT,
+                           env=clean_env(), timeout=4 * 3600)
+        print(f"  ({run_dir.name}: {time.monotonic() - t0:.0f} s)", flush=True)
+    return json.loads((run_dir / "summary.json").read_text())
