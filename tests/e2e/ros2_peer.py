@@ -4,7 +4,7 @@ odometry on two robots' namespaces, then records every nav_msgs/OccupancyGrid it
     python -m tests.e2e.ros2_peer LOG OUT.json NS_A NS_B [--scans N]
 
 Half the log's first N scans go to each namespace (``/<ns>/scan``, ``/<ns>/odom``), once every
-publisher has a subscriber; then it listens to ``/<ns>/map``, ``/<ns>/map_std`` and ``/map``
+publisher has a subscriber and a second more; then it listens to ``/<ns>/map``, ``/<ns>/map_std`` and ``/map``
 (reliable, transient local) and rewrites OUT.json after every map until it is stopped (SIGTERM).
 """
 
@@ -15,6 +15,7 @@ import json
 import math
 import os
 import signal
+import time
 
 import rclpy
 from nav_msgs.msg import OccupancyGrid, Odometry
@@ -57,6 +58,9 @@ def main() -> None:
     stopped = []
     signal.signal(signal.SIGTERM, lambda *_: stopped.append(True))
     while not stopped and not all(p.get_subscription_count() for pair in pubs.values() for p in pair):
+        rclpy.spin_once(node, timeout_sec=0.1)
+    settle = time.monotonic() + 1.0  # discovery is two-way: the subscribers match these publishers a moment later
+    while not stopped and time.monotonic() < settle:
         rclpy.spin_once(node, timeout_sec=0.1)
     half = a.scans // 2
     step = float(log.angles[1] - log.angles[0])
