@@ -8,12 +8,16 @@ Run-book: ``swarmmap ros2 --namespaces robot_a robot_b [up's options]`` (needs r
    reliable publisher matches too). Their input is over once every robot has sent scans and none
    came for ``ros2.idle_s``; a robot that sent nothing within ``ros2.wait_s`` is refused by name.
 2. Each robot's scans, at their poses, are kept as a rosbag2 in the run directory
-   (``RUN_DIR/input/<ns>.mcap``: what the team learned from, replayable with ``--dataset``).
+   (``RUN_DIR/input/<ns>/<ns>.mcap``: what the team learned from, replayable with ``--dataset``).
 3. The team runs as ``swarmmap up --dataset`` on them, one robot per namespace, and its observer
    publishes, at every evaluation, each robot's mean map on ``/<ns>/map``, its std on
    ``/<ns>/map_std`` (a model with one; ``100 x std / observer.std_max``) and the team's on
    ``/map``: ``nav_msgs/OccupancyGrid``, frame ``map``, reliable and transient local (a node that
    starts later gets the newest map), 0-100.
+
+The robots' poses are taken as given, so they must share one frame (a multi-robot SLAM's
+``map``, or odometry of robots started at known poses of one frame): each robot's odometry in
+its own frame would put its map where it started.
 
 Training starts when the input is over (the learners train on their data offline, as DiNNO's
 offline mode does); the maps are refreshed as it goes on.
@@ -173,7 +177,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     inputs = cfg.run_dir / "input"
     if inputs.exists() and any(inputs.iterdir()):
         raise ConfigError(f"config error:\n  run_dir: {inputs} holds the input of an earlier run, which is never overwritten; "
-                          "choose another run directory (or replay it: swarmmap up --dataset " + f"{inputs}/*.mcap)")
+                          "choose another run directory (or replay it: swarmmap up --dataset " + f"{inputs}/*/*.mcap)")
     got = hear(cfg, stop)
     if stop.is_set():
         return 130

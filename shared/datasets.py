@@ -24,6 +24,7 @@ from __future__ import annotations
 import gzip
 import io
 import math
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -64,8 +65,13 @@ class LaserLog:
         if self.poses.shape != (n, 3) or self.ranges.shape != (n, len(self.angles)):
             raise DatasetError(self.source, f"inconsistent log: {n} stamps, poses {self.poses.shape}, ranges "
                                             f"{self.ranges.shape}, {len(self.angles)} beam angles")
+        keep = np.isfinite(self.t) & np.isfinite(self.poses).all(axis=1)
+        if n and not keep.all():  # a pose or stamp that is no number places nothing
+            self.t, self.poses, self.ranges = self.t[keep], self.poses[keep], self.ranges[keep]
+            self.notes = [*self.notes, f"left out {n - int(keep.sum())} scans whose pose or stamp is not a finite number"]
+            n = len(self.t)
         if n == 0:
-            raise DatasetError(self.source, "no laser scans in it")
+            raise DatasetError(self.source, "no laser scans in it (with a finite pose)")
 
     def __len__(self) -> int:
         return len(self.t)
@@ -97,9 +103,12 @@ class LaserLog:
 
 
 def carmen_angles(beams: int) -> np.ndarray:
-    """Beam angles of a CARMEN ``FLASER`` line of ``beams`` readings: from -90 degrees, one degree
-    apart for 180/181 beams, half a degree for 360/361, a quarter for 720/721 (CARMEN's guess);
-    any other count spread evenly over 180 degrees."""
+    """Beam angles of a CARMEN ``FLASER`` line of ``beams`` readings, with CARMEN's spacing for a
+    SICK (``carmen_laser_guess_angle_increment``): from -90 degrees, one degree apart for 180/181
+    beams, half a degree for 360/361, a quarter for 720/721; a quarter degree from -50 for 400/401
+    (a SICK's 100 degree mode); any other count spread evenly over 180 degrees."""
+    if beams in (400, 401):
+        return np.radians(-50.0 + 0.25 * np.arange(beams)).astype(np.float64)
     step = {180: 1.0, 181: 1.0, 360: 0.5, 361: 0.5, 720: 0.25, 721: 0.25}.get(beams)
     step_rad = math.radians(step) if step is not None else math.pi / max(beams - 1, 1)
     return (-math.pi / 2 + step_rad * np.arange(beams)).astype(np.float64)
@@ -163,8 +172,8 @@ def read_carmen(path: str | Path, pose: str = "log") -> LaserLog:
                 except (ValueError, IndexError) as exc:
                     raise DatasetError(path, f"line {lineno}: a {kind} line that cannot be read ({exc})") from None
                 rows[kind].append((stamp, laser if pose == "log" else odom, ranges, beam_angles))
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
-        raise DatasetError(path, f"cannot be read: {exc}") from None
+    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:  # zlib: a damaged gzip stream
+        raise DatasetError(path, f"cannot be read: {type(exc).__name__}: {exc}") from None
     kind = "FLASER" if rows["FLASER"] else "ROBOTLASER1"
     scans = rows[kind]
     if not scans:
@@ -190,7 +199,8 @@ def read_carmen(path: str | Path, pose: str = "log") -> LaserLog:
 
 
 def _yaw(q) -> float:
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    """The heading of quaternion ``q`` (normalised or not)."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), q.w * q.w + q.x * q.x - q.y * q.y - q.z * q.z)
 
 
 def _stamp(header) -> float:
@@ -249,6 +259,8 @@ class BagMessages:
 
     def add_scan(self, msg) -> None:
         ranges = np.asarray(msg.ranges, np.float64)
+        if msg.range_max > 0:  # beyond the sensor's stated range: no measurement (a driver's error code)
+            ranges[np.isfinite(ranges) & (ranges > msg.range_max)] = np.nan
         ranges[np.isposinf(ranges)] = float(msg.range_max)  # REP 117: +inf is no return within range
         self.scans.append((_stamp(msg.header), msg.header.frame_id.lstrip("/"), ranges.tolist(),
                            float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max)))
@@ -285,7 +297,11 @@ def bag_messages(path: Path, pose: str, topics: BagTopics) -> tuple[BagMessages,
             if pose == "odom" and topics.odom not in names:
                 raise DatasetError(path, f"no odometry topic {topics.odom!r} (topics: {sorted(names)})")
             use_odom = pose == "odom" or (pose == "auto" and topics.odom in names)
-            wanted = [topics.scan] + ([topics.odom] if use_odom else ["/tf", "/tf_static"])
+            for topic, kind in ((topics.scan, "sensor_msgs/msg/LaserScan"), (topics.odom, "nav_msgs/msg/Odometry")):
+                if (topic == topics.scan or use_odom) and names[topic].split("/")[-1] != kind.split("/")[-1]:
+                    raise DatasetError(path, f"topic {topic!r} holds {names[topic]}, not {kind}")
+            # odometry: the static tf says where the LiDAR sits on the base; else the poses come from tf
+            wanted = [topics.scan] + ([topics.odom, "/tf_static"] if use_odom else ["/tf", "/tf_static"])
             for conn, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic in wanted]):
                 msg = reader.deserialize(raw, conn.msgtype)
                 if conn.topic == topics.scan:
@@ -319,6 +335,7 @@ def messages_log(source: str, got: BagMessages, use_odom: bool, topics: BagTopic
     widths = {len(s[2]) for s in scans}
     if len(widths) > 1:
         raise DatasetError(path, f"the scans on {topics.scan} change their number of beams ({sorted(widths)})")
+    scans = [scans[k] for k in np.argsort([s[0] for s in scans], kind="stable")]  # time order, whatever the bag's
     t = np.array([s[0] for s in scans])
     frame = scans[0][1]
     tracks = {k: PoseTrack(v[0], v[1], v[2]) for k, v in got.tf.items()}
@@ -346,7 +363,8 @@ def messages_log(source: str, got: BagMessages, use_odom: bool, topics: BagTopic
     if len(kept) < len(scans):
         notes.append(f"left out {len(scans) - len(kept)} scans outside the poses' time span")
     return LaserLog(source=source, t=t[inside], poses=poses[inside], angles=first[3] + first[4] * np.arange(len(first[2])),
-                    ranges=np.array([x[2] for x in kept], np.float64), no_return_m=first[6], min_range_m=first[5], notes=notes)
+                    ranges=np.array([x[2] for x in kept], np.float64), min_range_m=first[5], notes=notes,
+                    no_return_m=first[6] if first[6] > 0 else math.inf)  # a range_max left at 0: no no-return value
 
 
 def _chain(tracks: dict[tuple[str, str], PoseTrack], parent: str, child: str, t: np.ndarray):
@@ -504,8 +522,8 @@ def ros_time(t: float):
     """A builtin_interfaces/Time for ``t`` seconds."""
     from rosbags.typesys.stores.ros2_humble import builtin_interfaces__msg__Time as Time
 
-    sec = math.floor(t)
-    return Time(sec=int(sec), nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
+    sec, nanosec = divmod(int(round(t * 1e9)), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def write_rosbag(log: LaserLog, out: str | Path, *, storage: str = "mcap", scan_topic: str = "/scan",

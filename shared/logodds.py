@@ -2,8 +2,10 @@
 
 Every beam lowers the log-odds of the cells it crosses (``log(p_miss / (1 - p_miss))``) and
 raises the cell it ends in when it hits (``log(p_hit / (1 - p_hit))``), each cell counted once
-per beam; the sum is clamped to [``logit(p_min)``, ``logit(p_max)``]. The defaults are
-OctoMap's (hit 0.7, miss 0.4, clamping 0.1192 and 0.971). A cell no beam reached stays at 0.5.
+per beam (twice at most where the march crosses from one slab of steps to the next); the sum is
+clamped to [``logit(p_min)``, ``logit(p_max)``] once, where OctoMap clamps after every update.
+The bounds and probabilities are OctoMap's (hit 0.7, miss 0.4, clamping 0.1192 and 0.971). A
+cell no beam reached stays at 0.5.
 """
 
 from __future__ import annotations

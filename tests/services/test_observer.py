@@ -129,3 +129,29 @@ def test_a_trajectory_is_logged_in_pieces_that_stay_bounded():
     drawn = [p for piece in pieces for p in piece[:-1]] + path.points
     assert [x for x, _ in drawn] == [0.1 * k for k in range(10_000)]
     assert path.add(999.9 + 0.01, 0.0) == (False, None)
+
+
+def test_the_worlds_unknown_cells_reach_the_sinks_as_unknown_at_the_observers_resolution():
+    """A dataset's reference (0 free, 1 occupied, 2 unknown at 0.05 m) resampled to the observer's
+    0.1 m cells: the unknown stays unknown (a rosbag2's ``/reference`` holds -1 there, not a wall)."""
+    import torch
+
+    from swarmmap.shared.protocol import WorldMap
+
+    class Sink:
+        def world(self, resolution, origin, shape, reference):
+            self.got = (resolution, shape, reference)
+
+    grid = np.full((40, 60), 2, np.uint8)
+    grid[10:30, 10:50] = 0
+    grid[10, 10:50] = 1
+    cfg = resolve(preset="smoke", environ={}, cli={"observer": {"map_resolution_m": 0.1}})
+    sink = Sink()
+    obs = Observer(cfg, rec=rr.RecordingStream("test-observer"), device=torch.device("cpu"), sinks=[sink])
+    obs.on_world(WorldMap(run="r", sender=0, resolution=0.05, origin=[-1.0, -1.0], grid=Tensor.of(grid, "|u1"),
+                          val_points=Tensor.of(np.zeros((1, 2), np.float32), "<f4"),
+                          val_labels=Tensor.of(np.zeros(1, np.float32), "<f4"), robots=1))
+    resolution, shape, trinary = sink.got
+    assert resolution == 0.1 and shape == (20, 30) and trinary.shape == shape
+    assert (trinary[:5] == 2).all() and (trinary[15:] == 2).all()  # nobody saw there
+    assert (trinary[6:14, 6:24] == 0).all() and (trinary[5, 6:24] == 1).all()

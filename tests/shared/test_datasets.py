@@ -319,3 +319,97 @@ def test_a_dataset_run_takes_the_dataset_defaults_under_what_the_user_gives():
     assert plain.world.dataset == [] and plain.lidar.range_noise_std_m == 0.01 and plain.world.lidar_max_range_m == 3.5
     again = resolve(config_file=None, cli=cfg.model_dump(mode="json"), environ={})  # a run's config.yaml, read back
     assert again == cfg
+
+
+def test_odometry_bag_places_the_lidar_by_tf_static_and_takes_scans_in_stamp_order(tmp_path):
+    """Odometry of the base with the LiDAR mounted 0.2 m ahead and turned round (``/tf_static``
+    base_link -> laser), scans written out of stamp order, one reading beyond ``range_max`` (a
+    driver's error code): the scans land on the walls, in time order, the bad reading dropped."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from swarmmap.shared.datasets import ros_time
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    poses = synthetic_poses(10)  # the laser's
+    angles = carmen_angles(90)
+
+    def quat(th):
+        return T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2))
+
+    mount = T["geometry_msgs/msg/TransformStamped"](
+        header=T["std_msgs/msg/Header"](stamp=ros_time(0.0), frame_id="base_link"), child_frame_id="laser",
+        transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=0.2, y=0.0, z=0.0),
+                                                   rotation=quat(math.pi)))
+    with Writer(tmp_path / "odom-bag", version=9) as w:
+        c_static = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
+        c_odom = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
+        c_scan = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
+        c_wrong = w.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
+        w.write(c_static, 1, ts.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=[mount]), "tf2_msgs/msg/TFMessage"))
+        for k, (x, y, th) in enumerate(poses):
+            base_th = th - math.pi  # the laser looks backwards: the base faces the other way
+            bx, by = x - 0.2 * math.cos(base_th), y - 0.2 * math.sin(base_th)
+            header = T["std_msgs/msg/Header"](stamp=ros_time(10.0 + k), frame_id="odom")
+            odom = T["nav_msgs/msg/Odometry"](
+                header=header, child_frame_id="base_link",
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=bx, y=by, z=0.0),
+                                                     orientation=quat(base_th)), covariance=np.zeros(36)),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                                                       angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
+                    covariance=np.zeros(36)))
+            w.write(c_odom, int((10.0 + k) * 1e9), ts.serialize_cdr(odom, "nav_msgs/msg/Odometry"))
+        for k in [*range(5, 10), *range(5)]:  # written out of order
+            ranges = room_ranges(*poses[k, :2], poses[k, 2] + angles).astype(np.float32)
+            ranges[3] = 65.533  # beyond range_max
+            scan = T["sensor_msgs/msg/LaserScan"](
+                header=T["std_msgs/msg/Header"](stamp=ros_time(10.0 + k), frame_id="laser"), angle_min=float(angles[0]),
+                angle_max=float(angles[-1]), angle_increment=float(angles[1] - angles[0]), time_increment=0.0,
+                scan_time=0.0, range_min=0.1, range_max=30.0, ranges=ranges, intensities=np.zeros(0, np.float32))
+            w.write(c_scan, int((10.0 + k) * 1e9), ts.serialize_cdr(scan, "sensor_msgs/msg/LaserScan"))
+        w.write(c_wrong, 1, ts.serialize_cdr(T["geometry_msgs/msg/PoseStamped"](
+            header=T["std_msgs/msg/Header"](stamp=ros_time(10.0), frame_id="map"),
+            pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                                             orientation=quat(0.0))), "geometry_msgs/msg/PoseStamped"))
+    log = read_log(tmp_path / "odom-bag")
+    assert np.all(np.diff(log.t) > 0) and len(log) == 10
+    assert np.allclose(log.poses[:, :2], poses[:, :2], atol=1e-6)
+    assert np.allclose(np.angle(np.exp(1j * (log.poses[:, 2] - poses[:, 2]))), 0, atol=1e-6)
+    assert np.isnan(log.ranges[:, 3]).all() and not log.hits(10.0)[2][:, 3].any()
+    assert on_walls(log) < 1e-3
+    with pytest.raises(DatasetError, match=r"topic '/pose' holds geometry_msgs/msg/PoseStamped, not nav_msgs/msg/Odometry"):
+        read_log(tmp_path / "odom-bag", topics=BagTopics(odom="/pose"))
+
+
+def test_damaged_input_is_refused_or_left_out_with_a_reason(tmp_path):
+    good = tmp_path / "good.log.gz"
+    write_carmen(good, n=30, gz=True)
+    data = bytearray(good.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 40] = bytes(40)  # a damaged deflate stream
+    (tmp_path / "damaged.log.gz").write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="damaged.log.gz: cannot be read"):
+        read_log(tmp_path / "damaged.log.gz")
+    log = read_log(good)
+    poses = log.poses.copy()
+    poses[[2, 5]] = np.nan
+    kept = LaserLog(source="x", t=log.t, poses=poses, angles=log.angles, ranges=log.ranges, no_return_m=log.no_return_m)
+    assert len(kept) == len(log) - 2 and "left out 2 scans whose pose or stamp is not a finite number" in kept.notes
+    with pytest.raises(DatasetError, match="no laser scans in it"):
+        LaserLog(source="x", t=log.t[:1], poses=poses[2:3], angles=log.angles, ranges=log.ranges[:1], no_return_m=80.0)
+
+
+def test_stamps_headings_and_carmens_100_degree_mode():
+    from types import SimpleNamespace
+
+    from swarmmap.shared.datasets import _yaw, ros_time
+
+    t = ros_time(2.9999999999)
+    assert (t.sec, t.nanosec) == (3, 0)
+    t = ros_time(1.25)
+    assert (t.sec, t.nanosec) == (1, 250_000_000)
+    assert _yaw(SimpleNamespace(x=0.0, y=0.0, z=1.0, w=1.0)) == pytest.approx(math.pi / 2)  # not normalised
+    a = carmen_angles(401)
+    assert math.degrees(a[0]) == pytest.approx(-50) and math.degrees(a[-1]) == pytest.approx(50)
