@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -93,10 +94,27 @@ def blueprint(robots: int, bayesian: bool) -> rrb.Blueprint:
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 
 
+def rerun_executable() -> list[str]:
+    """Rerun's viewer binary itself (``RERUN_CLI_PATH``, else the one ``rerun-sdk`` ships), so that
+    stopping the process started stops the server; ``python -m rerun`` where there is none (that
+    wrapper runs the binary as a child of its own, which outlives the wrapper when it is stopped)."""
+    if path := os.environ.get("RERUN_CLI_PATH"):
+        return [path]
+    try:
+        import rerun_cli
+
+        binary = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
+        if binary.is_file() and sys.platform != "darwin":
+            return [str(binary)]
+    except ImportError:
+        pass
+    return [sys.executable, "-m", "rerun"]
+
+
 def rerun_cli(*args: str, detach: bool = False) -> subprocess.Popen:
-    """``python -m rerun ARGS`` (Rerun's own viewer and servers, which take a bind address):
-    dying with this process, or, ``detach``-ed, staying open after it (a viewer window)."""
-    return subprocess.Popen([sys.executable, "-m", "rerun", *args], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+    """Rerun's CLI with ``ARGS`` (its own viewer and servers, which take a bind address): dying
+    with this process, or, ``detach``-ed, staying open after it (a viewer window)."""
+    return subprocess.Popen([*rerun_executable(), *args], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=detach, preexec_fn=None if detach else die_with_parent)
 
 

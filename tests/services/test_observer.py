@@ -108,6 +108,8 @@ def test_the_web_viewer_and_its_grpc_server_listen_on_loopback_unless_told_other
         for proc in servers:
             proc.terminate()
             proc.wait(30)
+    # Stopped, the web viewer's server is gone: nothing of it keeps the port (or outlives the observer).
+    assert wait_until(lambda: not listening_addresses(web), 10, 0.2), f"port {web} still served after the stop"
     warned = [r.getMessage() for r in caplog.records if "listen beyond loopback" in r.getMessage()]
     assert bool(warned) == (bind is not None), warned
 
