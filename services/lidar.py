@@ -158,6 +158,8 @@ def replay(cfg: RunConfig, robot: int, path: str, stop: threading.Event) -> int:
         bus.announce()
         if bus.wait_alive("learner", {str(robot)}, cfg.consumers_wait_s(), stop):
             log.warning("replaying although learner %d is not alive", robot)
+        elif Bus.wait_matched([out], 10.0, stop):
+            log.warning("replaying although learner %d's subscription is not known yet (its first frames may be lost)", robot)
         speed = cfg.lidar.replay_speed
         start = time.monotonic()
         for t, msg in messages:

@@ -203,6 +203,14 @@ def wait_for_consumers(cfg: RunConfig, bus: Bus, stop: threading.Event) -> bool:
     return True
 
 
+def wait_for_subscribers(pubs: list, stop: threading.Event, timeout: float = 10.0) -> None:
+    """Wait (up to ``timeout``) until every robot's scan publisher knows a subscriber (what it sends
+    before is dropped); warn naming the robots that have none."""
+    if waiting := Bus.wait_matched(pubs, timeout, stop):
+        log.warning("driving although no subscriber of %s is known yet (their first scans may be lost)",
+                    ", ".join(p.key for p in waiting))
+
+
 @contextmanager
 def serving(cfg: RunConfig, payload: bytes, stop: threading.Event) -> Iterator[list | None]:
     """The world's session: ``payload`` (a WorldMap) served on ``world/map``, a scan publisher per
@@ -219,7 +227,10 @@ def serving(cfg: RunConfig, payload: bytes, stop: threading.Event) -> Iterator[l
             stop.wait()
             yield None
         else:
-            yield pubs if wait_for_consumers(cfg, bus, stop) else None
+            ready = wait_for_consumers(cfg, bus, stop)
+            if ready and "lidar" in cfg.world.wait_for:
+                wait_for_subscribers(pubs, stop)
+            yield pubs if ready and not stop.is_set() else None
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:

@@ -172,6 +172,11 @@ class Publisher:
         self._bus.sent.add(self.key, len(payload))
         return len(payload)
 
+    def matched(self) -> bool:
+        """Whether this session knows of a subscriber to the key (Zenoh sends nothing where it knows none)."""
+        status = self._pub.matching_status
+        return bool(getattr(status, "matching", status))
+
     def undeclare(self) -> None:
         self._pub.undeclare()
 
@@ -260,6 +265,21 @@ class Bus:
             if not missing or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
                 return missing
             time.sleep(0.1) if stop is None else stop.wait(0.1)
+
+    @staticmethod
+    def wait_matched(pubs: list[Publisher], timeout: float, stop: threading.Event) -> list[Publisher]:
+        """Wait until each of ``pubs`` has a subscriber this session knows of; return those without.
+
+        A consumer's liveliness token can reach this session before its subscription does (they
+        travel apart), and what a publisher sends before it knows a subscriber is dropped: a
+        burst sent right after the token (a replay, a log served as fast as it is taken) would be
+        lost, so the sender waits for both."""
+        deadline = time.monotonic() + timeout
+        while True:
+            waiting = [p for p in pubs if not p.matched()]
+            if not waiting or time.monotonic() >= deadline or stop.is_set():
+                return waiting
+            stop.wait(0.05)
 
     def end_with_run(self, stop: threading.Event) -> None:
         """Set ``stop`` when the run's recorder says the run is over (``RunDone``, kept in
