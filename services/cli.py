@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable
 from importlib import metadata
@@ -220,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         print(exc.message, file=sys.stderr)
         return 2
     log = setup_logging(cfg.log_level, args.command)
+    if node := os.environ.get("SLURMD_NODENAME"):  # a SLURM task: say where it runs
+        log.info("SLURM job %s, task %s, on node %s", os.environ.get("SLURM_JOB_ID", "?"), os.environ.get("SLURM_PROCID", "?"), node)
     try:
         return _runner(args.command)(cfg, stop)
     except ConfigError as exc:

@@ -1,7 +1,8 @@
-"""The SLURM job scripts on a real (one-node) cluster: ``team.sbatch`` runs one task per service
-and ends COMPLETED with a whole run directory, and a second job on that run directory is
-refused; a killed learner task ends it FAILED within a minute, naming the learner;
-``swarmmap-up.sbatch`` runs ``swarmmap up`` as one task."""
+"""The SLURM job scripts on a real cluster: ``team.sbatch`` runs one task per service and ends
+COMPLETED with a whole run directory, and a second job on that run directory is refused; a
+killed learner task ends it FAILED within a minute, naming the learner; ``swarmmap-up.sbatch``
+runs ``swarmmap up`` as one task (the kit's one-node cluster); and ``team.sbatch`` spreads its
+tasks over the three nodes of ``deploy/slurm/local-cluster.sh 3``."""
 
 from __future__ import annotations
 
@@ -17,17 +18,19 @@ import pytest
 
 from swarmmap.shared.secrets import identities
 from tests.conftest import REPO, recording_entities, wait_until
-from tests.deploy.conftest import VENV_BIN
+from tests.deploy.conftest import VENV_BIN, run_kit
 
 pytestmark = pytest.mark.deploy
 
 
-def sbatch(script: str, tmp_path: Path, *args: str, wait: bool = True) -> tuple[str, subprocess.CompletedProcess]:
-    """Submit ``deploy/slurm/<script>`` with this interpreter's ``swarmmap`` on PATH; the job id and sbatch's result."""
+def sbatch(script: str, tmp_path: Path, *args: str, wait: bool = True,
+           options: tuple[str, ...] = ()) -> tuple[str, subprocess.CompletedProcess]:
+    """Submit ``deploy/slurm/<script>`` (with sbatch ``options``) with this interpreter's ``swarmmap``
+    on PATH; the job id and sbatch's result."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("SWARMMAP_", "SLURM_"))}
     env |= {"PATH": f"{VENV_BIN}:{env['PATH']}", "SWARMMAP_RUN_DIR": str(tmp_path / "run")}
     cmd = ["sbatch", "--parsable", f"--chdir={tmp_path}", f"--output={tmp_path}/job-%j.out", *(["--wait"] if wait else []),
-           str(REPO / "deploy" / "slurm" / script), *args]
+           *options, str(REPO / "deploy" / "slurm" / script), *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     job = proc.stdout.strip().split(";")[0]
     assert job.isdigit(), proc.stdout + proc.stderr
@@ -114,3 +117,36 @@ def test_single_node_up_job_completes(slurm_cluster, tmp_path):
     assert proc.returncode == 0 and job_state(job) == "COMPLETED", job_output(tmp_path, job)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["ok"] and summary["status"] == 0
+
+
+@pytest.fixture
+def three_nodes():
+    """The three-node cluster of ``deploy/slurm/local-cluster.sh``; the kit's one-node cluster back after."""
+    run_kit("slurm-local.sh")  # the packages and munge (and a skip or failure where this machine cannot)
+    script = REPO / "deploy" / "slurm" / "local-cluster.sh"
+    proc = subprocess.run(["bash", str(script), "3"], capture_output=True, text=True, timeout=600)
+    try:
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+        yield
+    finally:
+        subprocess.run(["bash", str(script), "stop"], capture_output=True, text=True, timeout=120)
+        run_kit("slurm-local.sh")
+
+
+def test_team_job_spreads_its_tasks_over_three_nodes_and_completes(three_nodes, tmp_path):
+    job, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", options=("--nodes", "3"))
+    out = job_output(tmp_path, job)
+    assert proc.returncode == 0 and job_state(job) == "COMPLETED", out
+    assert "3 robots on 3 node(s) (swarm-node[1-3])" in out and "run succeeded: all 3 learners finished" in out, out
+    run_dir = tmp_path / "run"
+    where = {}
+    for log in sorted((run_dir / "logs").glob("*.log")):  # each task says where it ran
+        found = re.search(rf"SLURM job {job}, task \d+, on node (swarm-node\d)", log.read_text())
+        assert found, f"{log.name} names no node"
+        where[log.stem] = found[1]
+    assert len(where) == 10 and where["router-0"] == "swarm-node1"
+    assert {where[f"learner-{r}"] for r in range(3)} == {"swarm-node1", "swarm-node2", "swarm-node3"}, where
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and all(v["finished"] and v["rounds"] == 60 for v in summary["learners"].values())
+    for name in ("config.yaml", "metrics.csv", "groundtruth.npz", "observer.json", "recording.rrd"):
+        assert (run_dir / name).stat().st_size > 0, name
