@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import signal
 import threading
 
@@ -27,11 +28,27 @@ def setup_logging(level: str, name: str) -> logging.Logger:
 
 
 def shutdown_event() -> threading.Event:
-    """An event set on SIGINT or SIGTERM; long loops wait on it instead of sleeping."""
+    """An event set on SIGINT or SIGTERM; long loops wait on it instead of sleeping.
+
+    The handler takes no lock: it writes a byte to a pipe, and a thread of its own sets the event.
+    (A handler runs on the main thread between two of its steps, possibly while that thread holds
+    the event's lock, in ``stop.wait()`` or in a handler interrupted by the next signal: setting
+    the event there deadlocked a service sent two SIGTERMs at once, for good.)"""
     stop = threading.Event()
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+
+    def watch() -> None:
+        os.read(read_end, 1)
+        stop.set()
+
+    threading.Thread(target=watch, name="shutdown", daemon=True).start()
 
     def handler(signum: int, frame: object) -> None:
-        stop.set()
+        try:
+            os.write(write_end, b"\0")
+        except BlockingIOError:  # the pipe is full: the event is being set already
+            pass
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
