@@ -36,6 +36,39 @@ log = logging.getLogger("lidar")
 INBOX_SCANS = 16  # scans that may wait for the sensor model (a few seconds of scans at any scan rate)
 
 
+class HeldUntilMatched:
+    """The samples publisher, holding back what it is given until this session knows the
+    learner's subscription: a learner's liveliness token (which lets the world drive) can arrive
+    before its subscription, and Zenoh drops what no known subscriber matches, so the first scans'
+    points would be lost. At most ``max_bytes`` or ``seconds`` are held (then they go anyway, with
+    a warning); the last one waits up to ``seconds`` for the match. Never blocks the scans' inbox
+    before then (its back pressure holds the world's publisher)."""
+
+    def __init__(self, out, robot: int, max_bytes: int = 8 << 20, seconds: float = 10.0):
+        self.out, self.robot, self.max_bytes, self.seconds = out, robot, max_bytes, seconds
+        self.held: list[bytes] | None = []
+        self.held_bytes = 0
+        self.since: float | None = None
+
+    def put(self, payload: bytes, last: bool, stop: threading.Event) -> None:
+        if self.held is None:
+            self.out.put_bytes(payload)
+            return
+        self.since = self.since or time.monotonic()
+        self.held.append(payload)
+        self.held_bytes += len(payload)
+        waited = time.monotonic() - self.since
+        if last and not self.out.matched():
+            Bus.wait_matched([self.out], max(0.0, self.seconds - waited), stop)
+        if self.out.matched() or last or self.held_bytes >= self.max_bytes or waited >= self.seconds:
+            if not self.out.matched():
+                log.warning("robot %d: no subscriber of its samples known after %.0f s; sending %d held back anyway",
+                            self.robot, time.monotonic() - self.since, len(self.held))
+            for held in self.held:
+                self.out.put_bytes(held)
+            self.held = None
+
+
 class Inbox:
     """Scans waiting for the sensor model, at most ``size``. A full inbox holds the Zenoh callback
     that puts a scan until there is room (or the streamer stops: the scan is then dropped), so
@@ -106,7 +139,7 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
                                    plan_reference(cfg.plan()))
     with Bus.open(cfg.zenoh, keys, "lidar", robot) as bus:
         bus.end_with_run(stop)
-        out = bus.publisher(keys.samples(robot))
+        out = HeldUntilMatched(bus.publisher(keys.samples(robot)), robot)
         bus.subscribe(keys.scan(robot), Scan, inbox.put, direct=True)  # a full inbox holds the world back
         bus.announce()
         count = points = 0
@@ -116,7 +149,7 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
                     continue
                 samples = model.samples(scan)
                 payload = encode(samples)
-                out.put_bytes(payload)
+                out.put(payload, scan.last, stop)
                 if recorder is not None:
                     recorder.add(payload)
                 count += 1
