@@ -58,10 +58,9 @@ class HeldUntilMatched:
         self.held.append(payload)
         self.held_bytes += len(payload)
         waited = time.monotonic() - self.since
-        if last and not self.out.matched():
-            Bus.wait_matched([self.out], max(0.0, self.seconds - waited), stop)
-        if self.out.matched() or last or self.held_bytes >= self.max_bytes or waited >= self.seconds:
-            if not self.out.matched():
+        matched = not Bus.wait_matched([self.out], max(0.0, self.seconds - waited) if last else 0.0, stop)
+        if matched or last or self.held_bytes >= self.max_bytes or waited >= self.seconds:
+            if not matched:
                 log.warning("robot %d: no subscriber of its samples known after %.0f s; sending %d held back anyway",
                             self.robot, time.monotonic() - self.since, len(self.held))
             for held in self.held:

@@ -224,7 +224,8 @@ class Observer:
     def on_world(self, world: WorldMap) -> None:
         """The plan, the map grid and the model the States are evaluated with."""
         raw = world.grid.numpy()  # 0 free, 1 occupied, 2 unknown (a dataset's reference, a ROS map's unknown)
-        grid = OccupancyGrid(raw, world.resolution, tuple(world.origin), unknown=(raw == 2) if (raw == 2).any() else None)
+        unknown = raw == 2
+        grid = OccupancyGrid(raw, world.resolution, tuple(world.origin), unknown=unknown if unknown.any() else None)
         self.grid = grid.resample(self.s.map_resolution_m)
         self.points, self.shape = grid.centres(self.s.map_resolution_m)
         self.points = self.points.astype(np.float32)

@@ -297,8 +297,9 @@ def bag_messages(path: Path, pose: str, topics: BagTopics) -> tuple[BagMessages,
             if pose == "odom" and topics.odom not in names:
                 raise DatasetError(path, f"no odometry topic {topics.odom!r} (topics: {sorted(names)})")
             use_odom = pose == "odom" or (pose == "auto" and topics.odom in names)
-            for topic, kind in ((topics.scan, "sensor_msgs/msg/LaserScan"), (topics.odom, "nav_msgs/msg/Odometry")):
-                if (topic == topics.scan or use_odom) and names[topic].split("/")[-1] != kind.split("/")[-1]:
+            read = [(topics.scan, "sensor_msgs/msg/LaserScan")] + ([(topics.odom, "nav_msgs/msg/Odometry")] if use_odom else [])
+            for topic, kind in read:
+                if names[topic].split("/")[-1] != kind.split("/")[-1]:
                     raise DatasetError(path, f"topic {topic!r} holds {names[topic]}, not {kind}")
             # odometry: the static tf says where the LiDAR sits on the base; else the poses come from tf
             wanted = [topics.scan] + ([topics.odom, "/tf_static"] if use_odom else ["/tf", "/tf_static"])
