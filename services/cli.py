@@ -66,10 +66,12 @@ DESCRIPTIONS = {
     "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
     "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
+    "net": "Change the network of a run started with up --netns: cut the team in two, heal it, set link rates and "
+           "loss (root).",
     "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
             "(nav_msgs/OccupancyGrid).",
 }
-SECTIONS = {"up": "up", "prepare": "up", "ros2": "ros2", "secrets": None, "router": None, "recorder": "recorder", "world": "world",
+SECTIONS = {"up": "up", "prepare": "up", "ros2": "ros2", "secrets": None, "router": "router", "recorder": "recorder", "world": "world",
             "lidar": "lidar", "learner": "learner", "observer": "observer", "status": None}
 TOOLS = ("runs", "logs", "compare")  # read run directories only: no config, no Zenoh
 # What a user sets most, first in up's and prepare's help: (config path, flag, help where the field's own does not fit).
@@ -155,7 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
             add_model_arguments(p.add_argument_group("ros2"), Ros2Settings, "ros2")
         elif name in TOOLS or name == "status":
             add_tool_arguments(name, p)
-        if name not in ("up", "prepare", "ros2", *TOOLS):
+        elif name == "net":
+            from swarmmap.services.netns import add_net_arguments
+
+            add_net_arguments(p)
+        if name not in ("up", "prepare", "ros2", "net", *TOOLS):
             add_common_arguments(p, SECTIONS[name])
     return parser
 
@@ -210,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in TOOLS:
         return run_tool(args)
     stop = shutdown_event()
+    if args.command == "net":
+        from swarmmap.services.netns import run_net
+
+        return run_net(args, stop)
     if args.command == "status":
         from swarmmap.services.status import run_status
 

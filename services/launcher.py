@@ -49,13 +49,16 @@ from pathlib import Path
 import yaml
 
 from swarmmap.services.console import Console, closing_block
+from swarmmap.services.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
 from swarmmap.services.preflight import PlanFacts, check_run
+from swarmmap.services.router import per_host
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig, fail, validate_config
 from swarmmap.shared.disk import disk_words
 from swarmmap.shared.fingerprint import fingerprint_diff, settings_fingerprint
 from swarmmap.shared.floorplan import PlanError
+from swarmmap.shared.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
 from swarmmap.shared.plans import plan_reference
 from swarmmap.shared.progress import TeamProgress, TraversalProgress
 from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan
@@ -119,19 +122,21 @@ def host_cores() -> int:
         return os.cpu_count() or 1
 
 
-def write_config(cfg: RunConfig) -> Path:
+def write_config(cfg: RunConfig, router_endpoints: list[str] | None = None) -> Path:
     """Write ``RUN_DIR/config.yaml`` and, unless the run is insecure, the run's credentials;
     returns the config's path."""
     path = cfg.run_dir / "config.yaml"
     atomic_write_text(path, cfg.dump_yaml())
-    write_run_secrets(cfg)
+    write_run_secrets(cfg, router_endpoints)
     return path
 
 
-def write_run_secrets(cfg: RunConfig) -> None:
+def write_run_secrets(cfg: RunConfig, router_endpoints: list[str] | None = None) -> None:
     """The run's credentials in ``zenoh.secrets``: a folder per service with its own key, its
-    certificate and the run's CA certificate (shared/secrets.py). The CA key is discarded once
-    they are issued, or kept in ``zenoh.keep_ca``, which must lie outside what services read."""
+    certificate and the run's CA certificate (shared/secrets.py); the routers' certificates
+    name the hosts of ``zenoh.connect`` and of ``router_endpoints`` (where the routers of a
+    run with a router per host reach each other). The CA key is discarded once they are
+    issued, or kept in ``zenoh.keep_ca``, which must lie outside what services read."""
     if cfg.zenoh.insecure:
         log.warning("INSECURE run %s: no TLS, no authentication, no access control (--zenoh-insecure)", cfg.run_id)
         return
@@ -142,7 +147,8 @@ def write_run_secrets(cfg: RunConfig) -> None:
         fail(f"config error:\n  zenoh.keep_ca: {keep} lies inside the credentials or the run directory, which services read; "
              "keep the CA key elsewhere (e.g. ~/.swarmmap-ca)")
     try:
-        issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect), keep_ca=keep)
+        issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots, per_host(cfg)),
+                                   router_names(cfg.zenoh.connect + (router_endpoints or [])), keep_ca=keep)
     except (SecretsError, OSError) as exc:
         fail(f"config error:\n  zenoh.secrets: {exc}")
     if issued:
@@ -165,11 +171,12 @@ class Child:
     """One service process (the latest, when it was restarted)."""
 
     service: str
-    ident: int
+    ident: int | str
     proc: subprocess.Popen
     log_path: Path
     args: tuple[str, ...] = ()
     restarts: int = 0
+    host: list[str] | None = None  # the command prefix that runs it on its host (a network namespace)
 
     @property
     def name(self) -> str:
@@ -201,11 +208,57 @@ class Launcher:
         self.failure_code: int | None = None  # that service's exit status
         self.done: RunDone | None = None  # the recorder's verdict, as it said it (also when it could not write it)
         self._phase = "starting"
+        self.per_host = per_host(self.cfg)
+        self.network: Network | None = None  # up --netns: the run's hosts
+        self.routers: dict[str, HostRouter] = {}  # a router per host: where each listens, whom it dials
+        if self.per_host:
+            self.plan_hosts()
 
-    def spawn(self, service: str, ident: int, *extra: str) -> Child:
+    def plan_hosts(self) -> None:
+        """A router per host (shared/mesh.py): on loopback ports, or with ``up.netns`` on the
+        addresses of the run's network (services/netns.py)."""
+        cfg, base_port = self.cfg, int(self.router_endpoint.rsplit(":", 1)[1])
+        hosts = host_names(cfg.robots)
+        local = {BASE: ("127.0.0.1", base_port)}
+        if cfg.up.netns:
+            if os.geteuid() != 0:
+                raise ConfigError("config error:\n  up.netns: network namespaces need root (run up as root, or drop --netns "
+                                  "for a router per host on loopback: --routers per-host)")
+            self.network = Network(cfg.run_id, cfg.robots, self.run_dir / "network.json", rate=cfg.up.link_rate,
+                                   loss=cfg.up.link_loss)
+            try:
+                self.network.subnet = str(free_subnet(tag_of(cfg.run_id)))
+            except NetnsError as exc:
+                raise ConfigError(f"config error:\n  up.netns: {exc}") from None
+            address = {h: (self.network.address(h), base_port if h == BASE else ROUTER_PORT) for h in hosts}
+            local |= {h: ("127.0.0.1", ROUTER_PORT) for h in hosts[1:]}
+        else:
+            address = local = local | {h: ("127.0.0.1", free_port()) for h in hosts[1:]}
+        try:
+            self.routers = plan(cfg.robots, cfg.up.router_links, address, local)
+        except MeshError as exc:
+            raise ConfigError(f"config error:\n  up.router_links: {exc}") from None
+
+    def router_endpoints(self) -> list[str]:
+        """Every endpoint a router of the run listens on (their certificates name these hosts)."""
+        return [e for r in self.routers.values() for e in r.listen]
+
+    def on_host(self, robot: int | None, client: bool) -> tuple[list[str] | None, tuple[str, ...]]:
+        """The command prefix and the extra arguments of a service of robot ``robot`` (None: the
+        base host's): with a router per host, a robot's services (a ``client``) are clients of
+        their own router only."""
+        if not self.per_host or robot is None:
+            return None, ()
+        host = robot_host(robot)
+        prefix = self.network.prefix(host) if self.network is not None else None
+        return prefix, ("--set", f"zenoh.connect=[{self.routers[host].local}]") if client else ()
+
+    def spawn(self, service: str, ident: int | str, *extra: str, robot: int | None = None) -> Child:
         """Start ``swarmmap <service>`` reading the run's config.yaml, logging to logs/ (appended:
-        a resumed run's log goes on after the earlier ones, under a line that says so)."""
-        child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", extra)
+        a resumed run's log goes on after the earlier ones, under a line that says so); a
+        service of ``robot`` runs on that robot's host."""
+        prefix, more = self.on_host(robot, client=service != "router")
+        child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", (*extra, *more), host=prefix)
         if child.log_path.exists() and child.log_path.stat().st_size:
             with child.log_path.open("a") as out:
                 out.write(f"\n--- swarmmap up: run {self.cfg.run_id} resumed at {local_time(time.time())} ---\n")
@@ -214,7 +267,8 @@ class Launcher:
         return child
 
     def start(self, child: Child, mode: str) -> None:
-        cmd = [sys.executable, "-m", "swarmmap.services.cli", child.service, "--config", str(self.config_path), *child.args]
+        cmd = [*(child.host or []), sys.executable, "-m", "swarmmap.services.cli", child.service, "--config", str(self.config_path),
+               *child.args]
         # The config file already holds the resolved environment; children must not re-read it.
         env = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_") and k != "SLURM_PROCID"}
         env["PYTHONUNBUFFERED"] = "1"
@@ -297,12 +351,15 @@ class Launcher:
         self.traversal.expected = facts.expected_scans
         self.announce(facts)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
-        write_config(cfg)
+        write_config(cfg, self.router_endpoints())
         t0 = time.monotonic()
         status = 1
+        guard = None
         try:
-            self.spawn("router", 0, "--zenoh-mode", "router", "--zenoh-listen", self.router_endpoint,
-                       "--set", "zenoh.connect=[]")
+            if self.network is not None:
+                guard = start_guard(self.network.state_path, self.run_dir / "logs" / "netns-guard.log")
+                self.network.create()
+            self.start_routers()
             with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
                 bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics, newest=1024)  # progress: never slows a publisher
                 bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add, newest=1024)
@@ -314,8 +371,15 @@ class Launcher:
         except RuntimeError as exc:
             log.error("%s", exc)
             status = 1
+        except NetnsError as exc:
+            log.error("up --netns: %s", exc)
+            self.failure, status = f"the run's network could not be made: {exc}", 1
         finally:
             self.shutdown()
+            if self.network is not None:
+                self.network.remove()
+            if guard is not None:
+                guard.terminate()
             if cfg.learner.compute_slots:
                 shutil.rmtree(slots_dir(cfg.run_id), ignore_errors=True)
             self.complete_summary(time.monotonic() - t0, status)
@@ -340,7 +404,7 @@ class Launcher:
         names = ["router", "recorder"] + (["observer"] if cfg.up.observer else []) + [
             f"{learners} learner(s)", f"{cfg.robots} lidar streamer(s)", "world"]
         log.info("starting %d services: %s", 3 + int(cfg.up.observer) + learners + cfg.robots, ", ".join(names))
-        self.wait_alive(bus, "router", {"0"})
+        self.wait_alive(bus, "router", {r.ident for r in self.routers.values()} or {"0"})
         recorder = self.spawn("recorder", 0)  # first, so that it records the run from the start
         if cfg.up.observer:
             self.spawn("observer", 0)
@@ -349,8 +413,8 @@ class Launcher:
             self.spawn("learner", 0)
         for i in range(cfg.robots):
             if cfg.learner.transport == "zenoh":
-                self.spawn("learner", i, "--robot", str(i))
-            self.spawn("lidar", i, "--robot", str(i))
+                self.spawn("learner", i, "--robot", str(i), robot=i)
+            self.spawn("lidar", i, "--robot", str(i), robot=i)
         self.wait_alive(bus, "recorder", {"0"})
         self.wait_alive(bus, "learner", ids)
         self.wait_alive(bus, "lidar", ids)
@@ -358,6 +422,22 @@ class Launcher:
         log.info("every service but the world is alive after %.1f s; the world builds the plan and drives the robots",
                  time.monotonic() - t0)
         return recorder
+
+    def start_routers(self) -> None:
+        """The run's router, or with a router per host each host's, linked as ``up.router_links`` says."""
+        if not self.per_host:
+            self.spawn("router", 0, "--zenoh-mode", "router", "--zenoh-listen", self.router_endpoint, "--set", "zenoh.connect=[]")
+            return
+        for host, r in self.routers.items():
+            self.spawn("router", r.ident, "--ident", r.ident, "--zenoh-mode", "router", "--set", f"zenoh.listen=[{','.join(r.listen)}]",
+                       "--set", f"zenoh.connect=[{','.join(r.dial)}]", robot=None if host == BASE else int(host[1:]))
+        links = ", ".join(f"{h}->{d.split('/')[-1]}" for h, r in self.routers.items() for d in r.dial)
+        log.info("a router per host (%d), linked %s: %s", len(self.routers), self.cfg.up.router_links, links)
+
+    def restartable(self, child: Child) -> bool:
+        """A crashed learner, lidar or world is started again; with a router per host, a router
+        too (its host's services reconnect to it and rejoin)."""
+        return child.service in RESTARTABLE or (self.per_host and child.service == "router")
 
     def show_progress(self, force: bool = False) -> None:
         """Log each phase once as it begins, and draw the progress line of the current one
@@ -401,7 +481,7 @@ class Launcher:
                     log.error("the run failed (recorder status %d): %s; see %s", code, why, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
             for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
-                if c.service in RESTARTABLE and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
+                if self.restartable(c) and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
                     self.restart(c)
             if (refused := next((c for c in self.children if c.proc.poll() == REFUSED), None)) is not None:
                 self.failure, self.failure_code = failure_reason(refused), REFUSED
@@ -439,6 +519,10 @@ class Launcher:
         summary["wall_time_s"] = round(wall + summary.get("earlier_wall_time_s", 0.0), 3)  # a resumed run's attempts add up
         summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode, "restarts": c.restarts}
                                for c in self.children}
+        if self.per_host:  # where each host's router listened and whom it dialled
+            summary["hosts"] = {h: {"router": f"router-{r.ident}", "listen": list(r.listen), "links": list(r.dial),
+                                    **({"namespace": self.network.namespace(h)} if self.network and h != BASE else {})}
+                                for h, r in self.routers.items()}
         try:
             atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
         except OSError as exc:

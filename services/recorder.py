@@ -152,15 +152,32 @@ class RunTracker:
 
     Pure bookkeeping (no network), so that the rules can be tested alone."""
 
-    def __init__(self, robots: int, rejoin_timeout: float = 0.0):
+    def __init__(self, robots: int, rejoin_timeout: float = 0.0, unreachable_timeout: float = 0.0):
         self.robots = robots
-        self.rejoin_timeout = rejoin_timeout
+        self.rejoin_timeout, self.unreachable_timeout = rejoin_timeout, unreachable_timeout
+        self.hosts_away: set[int] = set()  # robots whose host's router left (a router per host): their services are unreachable
+        self.host_back: dict[int, float] = {}  # when each robot's host's router came back: its services have rejoin_timeout from then
         self._lock = threading.Lock()
         self.finished: set[int] = set()
         self.training: set[int] = set()  # learners that reported a round: they hold their data
         self.seen: set[tuple[str, int]] = set()
         self.away: dict[tuple[str, int], tuple[float, str]] = {}  # left while needed: since when, and what it means
         self.failure: str | None = None
+        self.t0 = time.monotonic()
+        self.absences: list[dict] = []  # every learner that left while training: when, and when it was back
+
+    def _absence(self, key: tuple[str, int], now: float, back: bool) -> None:
+        """Note a learner's leaving (or its coming back) for summary.json's ``absences``."""
+        if key[0] != "learner":
+            return
+        if not back:
+            self.absences.append({"robot": key[1], "left_at_s": round(now - self.t0, 1), "back_after_s": None})
+            return
+        for entry in reversed(self.absences):
+            if entry["robot"] == key[1] and entry["back_after_s"] is None:
+                entry["back_after_s"] = round(now - self.t0 - entry["left_at_s"], 1)
+                log.info("learner %d is back after %.1f s away", key[1], entry["back_after_s"])
+                break
 
     def on_metrics(self, m: Metrics) -> None:
         with self._lock:
@@ -171,15 +188,24 @@ class RunTracker:
 
     def on_alive(self, service: str, ident: str, alive: bool, now: float | None = None) -> None:
         """A liveliness token came (``alive``) or went. A service that leaves while still needed
-        fails the run unless it is back within ``rejoin_timeout`` seconds (a launcher restarts it)."""
+        fails the run unless it is back within ``rejoin_timeout`` seconds (a launcher restarts it),
+        or, when its host's router left too (``router-r<i>``), within ``unreachable_timeout``."""
+        now = time.monotonic() if now is None else now
+        if service == "router" and ident[:1] == "r" and ident[1:].isdigit():
+            robot = int(ident[1:])
+            with self._lock:
+                if alive and robot in self.hosts_away:  # its router may be back before its services' tokens are
+                    self.host_back[robot] = now
+                (self.hosts_away.discard if alive else self.hosts_away.add)(robot)
+            return
         if not ident.isdigit():
             return
         key = (service, int(ident))
-        now = time.monotonic() if now is None else now
         with self._lock:
             if alive:
                 self.seen.add(key)
-                self.away.pop(key, None)
+                if self.away.pop(key, None) is not None:
+                    self._absence(key, now, back=True)
                 return
             if key not in self.seen or self.failure is not None or self._all_finished():
                 return
@@ -193,6 +219,7 @@ class RunTracker:
             else:
                 return
             self.away[key] = (now, why)
+            self._absence(key, now, back=False)
 
     def fail(self, why: str) -> None:
         """End the run as failed for ``why`` (the first failure is the one reported)."""
@@ -212,11 +239,17 @@ class RunTracker:
         """(ok, reason) once the run is over, else None."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            if self.failure is None and self.away:
-                since, why = min(self.away.values())
-                if now - since >= self.rejoin_timeout:
-                    back = f" and was not back within {self.rejoin_timeout:.0f} s" if self.rejoin_timeout else ""
-                    self.failure = why + back
+            for (_, robot), (since, why) in sorted(self.away.items(), key=lambda kv: kv[1]):
+                if self.failure is not None:
+                    break
+                unreachable = robot in self.hosts_away
+                limit = self.unreachable_timeout if unreachable else self.rejoin_timeout
+                if not unreachable:
+                    since = max(since, self.host_back.get(robot, since))
+                if now - since >= limit:
+                    host = f" (its host r{robot} unreachable: its router left too)" if unreachable else ""
+                    back = f" and was not back within {limit:.0f} s" if limit else ""
+                    self.failure = why + host + back
             if self.failure is not None:
                 return False, self.failure
             if self._all_finished():
@@ -436,7 +469,7 @@ class Recorder:
         self.cfg, self.run_dir, self.s = cfg, cfg.run_dir, cfg.recorder
         self.t0, self.started = time.monotonic(), time.time()
         self.earlier = read_summary(self.run_dir)  # the attempts this one resumes, if any
-        self.tracker = RunTracker(cfg.robots, self.s.rejoin_timeout_s)
+        self.tracker = RunTracker(cfg.robots, self.s.rejoin_timeout_s, self.s.unreachable_timeout_s)
         self.stall = StallWatch(cfg.robots, self.s.stall_timeout_s)
         self.phases = PhaseLog(cfg.robots, cfg.rounds())
         self.metrics = MetricsRecorder(self.run_dir / "metrics.csv")
@@ -446,15 +479,17 @@ class Recorder:
 
     def on_metrics(self, m: Metrics) -> None:
         """A learner's Metrics: into metrics.csv (a failed write fails the run), the rules and the log."""
+        new = True
         try:
-            self.metrics.add(m)
+            new = self.metrics.add(m)
         except OSError as exc:
             self.tracker.fail(cannot_write(self.metrics.path, exc))
         self.tracker.on_metrics(m)
         self.stall.on_metrics(m)
         self.phases.team.add(m)
-        log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
-                 m.consensus_error, "  (final)" if m.final else "")
+        if new:  # (a finished learner says its final Metrics again until the run is over)
+                log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
+                     m.consensus_error, "  (final)" if m.final else "")
 
     def on_scan(self, scan: Scan) -> None:
         """A robot's scan: progress, and the traversal's line."""
@@ -498,6 +533,8 @@ class Recorder:
             doc["reference"] = reference_scores(self.world)
         if not ok and reason.startswith("the run made no progress"):
             doc["held_up_by"] = self.stall.held_up_by()
+        if self.tracker.absences:  # learners that left while training (a lost host, a cut link) and came back, or not
+            doc["absences"] = self.tracker.absences
         return doc
 
 
@@ -515,7 +552,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     with Bus.open(cfg.zenoh, keys, "recorder", 0) as bus:
         bus.subscribe(keys.metrics("*"), Metrics, rec.on_metrics)
         bus.subscribe(keys.scan("*"), Scan, rec.on_scan)
-        for service in ("learner", "lidar", "world"):
+        for service in ("learner", "lidar", "world", "router"):  # a robot host's router: is its host reachable?
             bus.watch_alive(service, lambda ident, alive, service=service: rec.tracker.on_alive(service, ident, alive))
         done = bus.publisher(keys.run_done())
         bus.announce()

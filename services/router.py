@@ -1,7 +1,9 @@
 """The router service: a Zenoh session in router mode, for discovery across hosts and containers.
 
 Run-book: ``swarmmap router --zenoh-listen tcp/0.0.0.0:7447``; other services then connect
-with ``--zenoh-connect tcp/<host>:7447``. In a secure run (the default) every endpoint is TLS
+with ``--zenoh-connect tcp/<host>:7447``. With a router per host (``up.routers: per-host``,
+shared/mesh.py) each is started with ``--ident r<i>`` on robot ``i``'s host and
+``--zenoh-connect`` naming the routers it links to; the routers relay for each other. In a secure run (the default) every endpoint is TLS
 (``tcp/`` is served as ``tls/``, other protocols are refused; without ``--zenoh-listen`` it
 listens on ``tls/[::]:7447``), every other service is its client, and it enforces the run's
 access policy (:func:`run_policy`). It exits when the run is over (``run/done``) and every
@@ -34,17 +36,23 @@ def run_policy(cfg: RunConfig) -> dict:
         except GraphError:  # the learners refuse it themselves, naming it
             neighbours = None
     return access_policy(Keys(cfg.key_prefix, cfg.run_id), cfg.robots, inproc_learner=cfg.learner.transport == "inproc",
-                         neighbours=neighbours)
+                         neighbours=neighbours, host_routers=per_host(cfg))
+
+
+def per_host(cfg: RunConfig) -> bool:
+    """Whether the run has a router on each host (shared/mesh.py), not one for the run."""
+    return cfg.up.routers == "per-host" or cfg.up.netns
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """Serve as a router until stopped."""
     settings = cfg.zenoh.model_copy(update={"mode": "router"})
     policy = None if settings.insecure else run_policy(cfg)
-    with Bus.open(settings, Keys(cfg.key_prefix, cfg.run_id), "router", 0, policy=policy) as bus:
+    with Bus.open(settings, Keys(cfg.key_prefix, cfg.run_id), "router", cfg.router.ident, policy=policy) as bus:
         bus.end_with_run(stop)
         bus.announce()
-        log.info("router up, listening on %s", ", ".join(settings.listen) or "Zenoh's default endpoints")
+        log.info("router-%s up, listening on %s%s", cfg.router.ident, ", ".join(settings.listen) or "Zenoh's default endpoints",
+                 f"; linking to {', '.join(settings.connect)}" if settings.connect else "")
         stop.wait()
         if bus.run_done is not None:  # the run is over: stay while the others leave through us
             deadline = time.monotonic() + cfg.leave_s()

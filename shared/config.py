@@ -96,7 +96,11 @@ class ZenohSettings(Section):
 
 
 class RouterSettings(Section):
-    """The router service: a Zenoh session in router mode (listens on zenoh.listen)."""
+    """The router service: a Zenoh session in router mode (listens on zenoh.listen, dials zenoh.connect)."""
+
+    ident: str = Field("0", pattern=r"^(0|r[0-9]{1,2})$",
+                       description="which of the run's routers this is: 0 (the run's router, or the base host's when each "
+                                   "host has its own), r<i> (robot i's host; shared/mesh.py)")
 
 
 class WorldSettings(Section):
@@ -388,6 +392,9 @@ class RecorderSettings(Section):
     linger_s: float = Field(30.0, ge=0, description="once the run is over, how long to wait for the other services to leave")
     rejoin_timeout_s: float = Field(20.0, ge=0, description="a learner, lidar or the world that left while needed fails the run "
                                                              "unless it is back within this long (0: at once)")
+    unreachable_timeout_s: float = Field(600.0, ge=0, description="with a router per host: a service whose host's router "
+                                         "left too is unreachable (its host or links lost, a partition), not crashed; the run "
+                                         "waits this long for it to come back before it fails")
     stall_timeout_s: float = Field(600.0, gt=0, description="fail the run when, once every learner is alive, it makes no "
                                                             "progress (no new Metrics, no scans) for this long, naming the "
                                                             "learners that hold it up")
@@ -438,6 +445,26 @@ class UpSettings(Section):
                                                "(it resumes from its checkpoint and rejoins); 0: a crash ends the run")
     resume: bool = Field(False, description="go on with the interrupted run in run_dir (its checkpoints, metrics and logs); "
                                             "without it a run directory that holds a run is refused")
+    routers: Literal["one", "per-host"] = Field(
+        "one", description="one: a router for the run, every service its client; per-host: a router on each host (the "
+                           "base and each robot's), each host's services clients of their own, the routers linked as "
+                           "router_links says (no single point of failure; docs/deployment.md)")
+    router_links: str = Field("ring", description="with per-host routers: ring (each host to two others), full, star, or "
+                                                  "links such as base-r0,r0-r1,r1-base")
+    netns: bool = Field(False, description="run each robot's services (and its router) in a network namespace of its own, "
+                                           "joined by a bridge: a multi-host team on one machine (root; implies per-host "
+                                           "routers); removed when the run ends")
+    link_rate: str | None = Field(None, pattern=r"^[0-9]+(\.[0-9]+)?([kmg]?bit)$",
+                                  description="with netns: each robot host's link rate, each way (tc tbf), e.g. 100mbit, "
+                                              "10mbit, 1mbit")
+    link_loss: float = Field(0.0, ge=0, lt=1, description="with netns: share of packets each robot host's link loses, each "
+                                                          "way (nftables), e.g. 0.01")
+
+    @model_validator(mode="after")
+    def _links_need_netns(self) -> UpSettings:
+        if (self.link_rate is not None or self.link_loss) and not self.netns:
+            raise ValueError("link_rate and link_loss shape the links between network namespaces: add --netns")
+        return self
 
 
 class Ros2Settings(Section):

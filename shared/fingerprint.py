@@ -29,7 +29,7 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     # how sessions find each other and authenticate
     "zenoh": ("mode", "connect", "listen", "multicast_scouting", "config_file", "secrets", "connect_timeout_s", "insecure",
               "signer", "keep_ca"),
-    "router": (),
+    "router": ("ident",),
     # exporting the plan and exiting; the pace of the simulation and who it waits for (the scans are the same)
     "world": ("export", "time_scale", "wait_for", "wait_for_consumers_s"),
     # which robot a streamer serves, recording what it serves, the pace of a replay
@@ -41,11 +41,12 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     "observer": ("map_resolution_m", "mc_samples", "map_every", "std_max", "scan_every", "save", "spawn", "connect",
                  "serve_web", "web_port", "grpc_port", "torch_threads", "device", "map_dtype", "bind", "mcap"),
     # when the recorder ends a run
-    "recorder": ("start_timeout_s", "linger_s", "rejoin_timeout_s", "stall_timeout_s"),
+    "recorder": ("start_timeout_s", "linger_s", "rejoin_timeout_s", "stall_timeout_s", "unreachable_timeout_s"),
     "faults": (),
-    # the launcher (a replay's settings are the world's and lidar's fields it sets)
+    # the launcher (a replay's settings are the world's and lidar's fields it sets); where the services run and the
+    # network between their hosts (routers, namespaces, link rates and loss: how fast the States arrive, not what they are)
     "up": ("record", "replay", "observer", "viewer", "stop_grace_s", "observer_grace_s", "learner_grace_s", "start_timeout_s",
-           "restarts", "resume", "mcap"),
+           "restarts", "resume", "mcap", "routers", "router_links", "netns", "link_rate", "link_loss"),
     # where ROS 2 robots' scans are heard and their maps published (the scans themselves are the dataset's)
     "ros2": ("namespaces", "scan_topic", "odom_topic", "idle_s", "wait_s", "publish"),
 }

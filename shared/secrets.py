@@ -9,7 +9,8 @@ use ``RUN_DIR/secrets``), readable by its owner alone (0700; files 0600)::
     <identity>@<run>/key.pem    the service's private key
 
 for every identity of the run: ``router-0``, ``recorder-0``, ``observer-0``, ``world-0``,
-``lidar-<i>``, ``learner-<i>`` (i < robots) and the tools ``up-0`` and ``status-0``. A
+``lidar-<i>``, ``learner-<i>`` (i < robots), the tools ``up-0`` and ``status-0``, and with a
+router per host each robot host's router ``router-r<i>`` (shared/mesh.py). A
 certificate's common name is ``<identity>@<run>`` (:func:`cert_name`), the name the router's
 access policy knows it by, so credentials are bound to their run twice over: each run has its
 own CA, and a certificate of one run matches no subject of another's policy. Runs that share a
@@ -67,9 +68,11 @@ def cert_name(who: str, run: str) -> str:
     return f"{who}@{run}"
 
 
-def identities(robots: int) -> list[str]:
-    """Every identity of a run with ``robots`` robots."""
-    return [identity(s, 0) for s in SINGLETONS] + [identity(s, i) for s in PER_ROBOT for i in range(robots)]
+def identities(robots: int, host_routers: bool = False) -> list[str]:
+    """Every identity of a run with ``robots`` robots; with ``host_routers`` also each robot
+    host's router, ``router-r<i>`` (a router per host: shared/mesh.py)."""
+    hosts = [identity("router", f"r{i}") for i in range(robots)] if host_routers else []
+    return [identity(s, 0) for s in SINGLETONS] + [identity(s, i) for s in PER_ROBOT for i in range(robots)] + hosts
 
 
 def own_folder(secrets: Path, who: str, run: str) -> Path:
@@ -375,7 +378,7 @@ DECLARATIONS = ["declare_subscriber", "declare_queryable", "liveliness_token", "
 
 
 def reads(keys: Keys, robots: int, neighbours: dict[int, set[int]] | None = None,
-          inproc_learner: bool = False) -> dict[str, list[str]]:
+          inproc_learner: bool = False, host_routers: bool = False) -> dict[str, list[str]]:
     """The keys each identity may subscribe to, query and receive: what its service reads, no
     more. Every member sees the liveliness tokens and ``run/done``; learners their own robot's
     samples, their neighbours' State and RoundComplete (every learner's when ``neighbours`` is
@@ -383,7 +386,7 @@ def reads(keys: Keys, robots: int, neighbours: dict[int, set[int]] | None = None
     own robot's scans; the observer the scans, metrics and States; the recorder and ``up`` the
     scans and metrics; ``status`` the metrics, RoundCompletes and scans (never a State)."""
     common = [keys.alive(), keys.run_done()]
-    out = {name: list(common) for name in identities(robots)}
+    out = {name: list(common) for name in identities(robots, host_routers)}
     out["recorder-0"] += [keys.metrics("*"), keys.scan("*"), keys.world_map()]
     out["observer-0"] += [keys.metrics("*"), keys.scan("*"), keys.state("*"), keys.world_map()]
     out["up-0"] += [keys.metrics("*"), keys.scan("*")]
@@ -396,9 +399,9 @@ def reads(keys: Keys, robots: int, neighbours: dict[int, set[int]] | None = None
     return {name: sorted(set(keys_)) for name, keys_ in out.items()}
 
 
-def speaks(keys: Keys, robots: int, inproc_learner: bool = False) -> dict[str, list[str]]:
+def speaks(keys: Keys, robots: int, inproc_learner: bool = False, host_routers: bool = False) -> dict[str, list[str]]:
     """The keys each identity may publish on, declare tokens and answer queries on: its own."""
-    out = {name: [keys.alive(*name.rsplit("-", 1))] for name in identities(robots)}
+    out = {name: [keys.alive(*name.rsplit("-", 1))] for name in identities(robots, host_routers)}
     for i in range(robots):
         learner = identity("learner", 0 if inproc_learner else i)
         out[learner] += [keys.learner(i), keys.alive("learner", i), keys.alive("exchange", i)]
@@ -409,12 +412,14 @@ def speaks(keys: Keys, robots: int, inproc_learner: bool = False) -> dict[str, l
 
 
 def access_policy(keys: Keys, robots: int, inproc_learner: bool = False,
-                  neighbours: dict[int, set[int]] | None = None) -> dict:
+                  neighbours: dict[int, set[int]] | None = None, host_routers: bool = False) -> dict:
     """The router's access-control config: deny by default; each identity (by its certificate
     name, bound to this run) may publish, declare tokens and answer queries only on its own keys
     (:func:`speaks`), and receive data and replies only on what its service reads
     (:func:`reads`), whatever it subscribes to. Declarations pass to every member, so that
-    publishers learn of their subscribers."""
+    publishers learn of their subscribers. With ``host_routers`` (a router per host), the
+    other routers of the run relay everything under the run to and from this one: each router
+    holds its own clients to these rules, so a member's messages are checked where it joins."""
     rules: list[dict] = [
         {"id": "declarations", "permission": "allow", "flows": ["egress"], "messages": DECLARATIONS, "key_exprs": [keys.everything()]},
         # Any member may declare subscriptions and queries under the run (a wildcard one too); what
@@ -423,9 +428,16 @@ def access_policy(keys: Keys, robots: int, inproc_learner: bool = False,
     ]
     subjects: list[dict] = []
     policies: list[dict] = []
-    own, readable = speaks(keys, robots, inproc_learner), reads(keys, robots, neighbours, inproc_learner)
-    for name in identities(robots):
+    own = speaks(keys, robots, inproc_learner, host_routers)
+    readable = reads(keys, robots, neighbours, inproc_learner, host_routers)
+    if host_routers:
+        rules.append({"id": "relays", "permission": "allow", "flows": ["ingress", "egress"], "messages": ALL_MESSAGES,
+                      "key_exprs": [keys.everything()]})
+    for name in identities(robots, host_routers):
         subjects.append({"id": name, "cert_common_names": [cert_name(name, keys.run)]})
+        if host_routers and name.startswith("router-"):
+            policies.append({"id": f"{name}-policy", "subjects": [name], "rules": ["relays"]})
+            continue
         rules += [
             {"id": f"{name}-speaks", "permission": "allow", "flows": ["ingress"], "messages": SPEAK, "key_exprs": own[name]},
             {"id": f"{name}-is-asked", "permission": "allow", "flows": ["egress"], "messages": ["query"], "key_exprs": own[name]},
