@@ -15,7 +15,9 @@ without progress (receivers ignore duplicates). Robots come and go
 (:mod:`~swarmmap.services.learner.membership`): a neighbour that left or went silent is left
 out and the round finishes with the neighbours the node has; it is taken back when it sends a
 State of the round at hand; a node that restarts behind its team replays the rounds it lost or
-catches up to the team's round. Only a node left with no neighbour at all for ``peer_timeout``
+catches up to the team's round: from its own parameters, or, when it is more than REUNION_ROUNDS
+rounds behind (it waited alone through a partition), from its neighbours' States of that round
+(their median), its own data staying in its loss. Only a node left with no neighbour at all for ``peer_timeout``
 seconds stops, with :class:`~swarmmap.services.learner.exchange.PeerFailure`. A node with no
 neighbours in its graph trains alone.
 
@@ -48,7 +50,7 @@ from swarmmap.services.learner.exchange import (
     StateCheck,
     refuse,
 )
-from swarmmap.services.learner.membership import LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.membership import REUNION_ROUNDS, LateStates, Membership, Replay, RoundBuffer
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
@@ -71,7 +73,7 @@ class Algorithm1:
 
     def begin(self, state: np.ndarray, rounds: int, start_round: int, resumed: bool) -> None:
         """Start afresh at round ``start_round`` of ``rounds`` from ``state``."""
-        self.members = Membership(self.node_id, self.neighbours, self.rules, self.stats)
+        self.members = Membership(self.node_id, self.neighbours, self.rules, self.stats, clip=getattr(self.check, "clip", None))
         self.replay = Replay(self.node_id, self.rules.keep_rounds, self.rules.resend_after, self.stats)
         self.late, self.buf = LateStates(), RoundBuffer()
         self.rnd, self.rounds, self.updated, self.joining = start_round, rounds, False, resumed
@@ -184,13 +186,20 @@ class Algorithm1:
         j = msg.sender
         log.info("node %d: neighbour %d is at round %d; catching up from round %d%s", self.node_id, j, msg.round, self.rnd,
                  f" (left behind for {now - self.round_started:.0f} s)" if left_behind else "")
+        behind = msg.round - self.rnd
         self.buf.keep_from(msg.round)
         self.rnd, self.updated, self.round_started = msg.round, False, now
         self.buf.states[self.rnd][j] = msg.params
-        if self.rejoin is not None:
-            self.state = self.rejoin(self.state, dict(self.buf.states[self.rnd]))
+        peers = dict(self.buf.states[self.rnd])
+        if behind > REUNION_ROUNDS:  # its parameters are of a much earlier stage of the training than the team's
+            self.state = np.median(np.stack(list(peers.values())), axis=0).astype(self.state.dtype)
+            log.info("node %d: %d rounds behind its team, it goes on from %s of round %d (its own data stays in its loss)",
+                     self.node_id, behind, f"the median of neighbours {sorted(peers)}' States" if len(peers) > 1
+                     else f"neighbour {j}'s State", self.rnd)
+        elif self.rejoin is not None:
+            self.state = self.rejoin(self.state, peers)
         self.round_state = self.state
-        self.members.jumped(j, set(self.buf.states[self.rnd]))
+        self.members.jumped(j, set(self.buf.states[self.rnd]), self.rnd)
         self.stats.caught_up += 1
         self.send_state()
 

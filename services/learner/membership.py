@@ -9,6 +9,14 @@ It is taken back once it sends a State of the round at hand (at once) or of a la
 the next round). Silence is counted while the node waits, not while it computes
 (:meth:`Membership.paused`).
 
+A neighbour left out because it was gone or silent (its host lost, a link cut, a partition)
+learnt apart meanwhile, and so did this node: their parameters may then lie farther apart than
+the screen's distance limit, and each would refuse the other for good. For REUNION_ROUNDS rounds
+after its return, its States pass the screen's other checks only and are pulled within the
+limit (``clip``) before the update, so each moves the other by at most what the limit allows,
+and the two parts of the team meet again. A neighbour left out for sending refused States gets
+no reunion.
+
 :class:`Replay` keeps the States a node sent in its last ``keep_rounds`` rounds and sends them
 again to a neighbour that restarted behind, so that it replays the rounds it lost with exactly
 the States its neighbours had. :class:`LateStates` (poor links, ``round_wait``) keeps each
@@ -20,6 +28,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +37,8 @@ from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, Pee
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
+Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): theirs pulled within the screen's limit
+REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
 
 
 @dataclass
@@ -69,7 +80,8 @@ class RoundBuffer:
 class Membership:
     """The neighbours a node's rounds wait for, and when each was last heard."""
 
-    def __init__(self, node_id: int, neighbours: set[int], rules: ExchangeRules, stats: ExchangeStats):
+    def __init__(self, node_id: int, neighbours: set[int], rules: ExchangeRules, stats: ExchangeStats,
+                 clip: Clip | None = None):
         self.node_id, self.neighbours, self.rules, self.stats = node_id, frozenset(neighbours), rules, stats
         self.active = set(neighbours)  # the neighbours this round waits for
         self.returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
@@ -79,6 +91,23 @@ class Membership:
         self.banned: set[int] = set()  # said two different things for one round: never heard again
         self.lost_since: dict[int, float] = {}
         self.alone_since: float | None = None
+        # Reunion: a neighbour left out because it was gone or silent (a lost host, a cut link) learnt
+        # apart meanwhile; once back, its States farther than the screen's limit are taken pulled
+        # within it (``clip``), not refused, for REUNION_ROUNDS rounds, so two parts of a team meet again.
+        self.clip = clip
+        self.away: set[int] = set()
+        self.reunion: dict[int, int] = {}  # neighbour -> the last round its far States are pulled in
+
+    def reuniting(self, j: int, rnd: int) -> bool:
+        """Whether neighbour ``j``'s States of round ``rnd`` are taken pulled in when far (a reunion):
+        it was left out as gone or silent, and is not back yet or came back at most REUNION_ROUNDS ago."""
+        return self.clip is not None and (j in self.away or rnd <= self.reunion.get(j, -1))
+
+    def _back(self, j: int, rnd: int) -> None:
+        """Neighbour ``j`` is waited for again from round ``rnd``: a reunion when it had been away."""
+        if j in self.away:
+            self.away.discard(j)
+            self.reunion[j] = rnd + REUNION_ROUNDS
 
     def heard_from(self, j: int, now: float) -> None:
         self.heard[j] = now
@@ -87,6 +116,8 @@ class Membership:
         """Whether a neighbour's State passes ``check`` (against ``own``); a refused one is counted,
         and when the neighbour's refused States began is kept (it is left out if they go on)."""
         why = check(msg.params, own) if check is not None else None
+        if why is not None and own is not None and self.reuniting(msg.sender, msg.round) and hasattr(check, "loose"):
+            why = check.loose(msg.params, own)  # far is expected after learning apart: pulled in at the update
         if why is None:
             self.refused_since.pop(msg.sender, None)
             return True
@@ -100,7 +131,7 @@ class Membership:
         together (``screen``: the outliers are refused for this round, counted; an honest node far
         from the rest is refused only while it is), then, for the others, their late States
         (poor links). Neighbours with neither are counted as missed."""
-        fresh = {j: peers[j] for j in self.active & peers.keys()}
+        fresh = {j: self.clip(peers[j], own) if self.reuniting(j, rnd) else peers[j] for j in self.active & peers.keys()}
         refused = screen(own, fresh) if screen is not None and fresh else {}
         for j, why in refused.items():
             refuse(self.stats, self.node_id, Envelope("state", j, rnd), why, "outlier")
@@ -153,6 +184,7 @@ class Membership:
             return
         if now_round:
             self.active.add(j)
+            self._back(j, rnd)
             self.stats.rejoined += 1
             log.info("node %d: neighbour %d back in round %d", self.node_id, j, rnd)
         else:
@@ -168,14 +200,18 @@ class Membership:
         if self.returning:
             log.info("node %d: neighbour(s) %s back from round %d", self.node_id, sorted(self.returning), rnd)
             self.active.update(self.returning)
+            for j in self.returning:
+                self._back(j, rnd)
             self.stats.rejoined += len(self.returning)
             self.returning.clear()
 
-    def jumped(self, j: int, present: set[int]) -> None:
+    def jumped(self, j: int, present: set[int], rnd: int) -> None:
         """The node caught up with neighbour ``j``'s round, where ``present`` sent their States
         too: they are waited for; the others come back once they reach it."""
         self.active = {j} | (self.active & present)
         self.returning = set(self.neighbours) - self.active - self.banned
+        for k in self.active:
+            self._back(k, rnd)
 
     def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
@@ -186,8 +222,10 @@ class Membership:
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
+                self.away.add(j)
             elif now - self.heard[j] > r.silent_after:
                 self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
+                self.away.add(j)
             elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
                 self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
         if self.neighbours and not self.active:

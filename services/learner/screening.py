@@ -61,6 +61,29 @@ class StateScreen:
         self.layout, self.max_distance = layout, max_distance
         self.groups = groups(layout)
 
+    def loose(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
+        """The checks but the distance: why a State cannot come from an honest node however far
+        apart the two have learnt (a neighbour back from a partition), or None."""
+        return StateScreen(self.layout, np.inf)(theirs, own)
+
+    def clip(self, theirs: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """``theirs`` pulled toward ``own`` until it lies within every distance limit (the whole
+        and, for a Bayesian network, each part): what a far State may move this node by, at most."""
+        mine, yours = self.layout.params_of(own).astype(np.float64), self.layout.params_of(theirs).astype(np.float64)
+        diff = yours - mine
+        factor = 1.0
+        limits = [(np.arange(mine.size), self.max_distance)] + (
+            [(at, GROUP_FACTOR * self.max_distance) for _, at in self.groups] if len(self.groups) > 1 else [])
+        for at, limit in limits:
+            distance, scale = float(np.linalg.norm(diff[at])), float(np.linalg.norm(mine[at]))
+            if distance > 0 and scale > 0:
+                factor = min(factor, 0.99 * limit * scale / distance)
+        if factor >= 1.0:
+            return theirs
+        out = theirs.copy()
+        out[: mine.size] = (mine + factor * diff).astype(theirs.dtype)
+        return out
+
     def __call__(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
         if theirs.size != self.layout.size:
             return f"{theirs.size} values, this node's State has {self.layout.size}"

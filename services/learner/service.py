@@ -216,7 +216,7 @@ class RobotLearner:
         msg = self.metrics(s.rounds, final, peers, final=True)  # (its times are the training's)
         if self.cfg.run_dir is not None:  # before the final Metrics: a run is over only once every map is on disk
             write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
-        m = self.publish(msg, final)
+        m = self.final_metrics = self.publish(msg, final)
         log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
                  robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
         if isinstance(self.slots, ComputeSlots):
@@ -347,8 +347,9 @@ def train_in_process(learners: list[RobotLearner], stop: threading.Event) -> Non
 def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     """One robot over Zenoh: subscribe to exactly its neighbours (known once the world answered),
     say so with an "exchange" token (neighbours start Algorithm 1 once they see it), train, then
-    say the final State again now and then until the run is over: a neighbour that restarts
-    behind a finished team catches up to it."""
+    say the final State and Metrics again now and then until the run is over: a neighbour that
+    restarts behind a finished team catches up to it, and a recorder cut off by a partition when
+    this robot finished hears of it once the link is back (it keeps the first)."""
     s, cfg = me.s, me.cfg
     transport = me.compose(lambda layout: ZenohTransport(bus, me.robot, me.neighbours, layout.size, s.inbox_limit))
     if any_faults(cfg.faults):
@@ -363,6 +364,7 @@ def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     deadline = time.monotonic() + (s.peer_timeout_s if bus.alive("recorder") else 0.5)
     while not stop.wait(min(s.resend_after_s, max(0.0, deadline - time.monotonic()))) and time.monotonic() < deadline:
         transport.send_state(s.rounds // s.exchange_every, me.final_state)
+        me.metrics_pub.put(me.final_metrics)
 
 
 def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:

@@ -597,6 +597,33 @@ def test_a_lone_state_from_far_ahead_does_not_take_a_resumed_node_to_the_end():
     assert rounds_seen == [20] and stats.caught_up == 1 and stats.refused["far-future"] >= 1
 
 
+def test_a_node_far_more_rounds_behind_than_a_reunion_goes_on_from_its_teams_state():
+    """A node that waited alone through a partition catches up 78 rounds: its own parameters are
+    of round 2, its team's of round 80; it goes on from theirs (a few rounds behind: its own)."""
+    graph = {0: {2, 3}, 2: {0}, 3: {0}}
+    own = np.linspace(1, 2, 8)
+    for start, target, expect in ((2, 80, own + 0.03), (40, 80, own)):
+        hub, seen, stop = MemoryHub(graph), [], threading.Event()
+
+        def update(k, theta, peers, seen=seen, stop=stop):
+            seen.append((k, theta.copy()))
+            stop.set()
+            return theta
+
+        def feed(hub=hub, target=target):
+            threading.Event().wait(0.3)
+            hub.queues[0].put(Envelope("state", 2, target, own + 0.02))
+            hub.queues[0].put(Envelope("state", 3, target, own + 0.03))
+
+        threading.Thread(target=feed, daemon=True).start()
+        with pytest.raises(InterruptedError):
+            run_algorithm1(0, graph[0], 100, own, update, hub.transport(0), start_round=start, resumed=True,
+                           keep_rounds=4, resend_after=5.0, stop=stop, peer_timeout=20,
+                           check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
+        assert [k for k, _ in seen] == [target]
+        np.testing.assert_array_equal(seen[0][1], expect)
+
+
 def test_a_resumed_node_far_behind_its_team_judges_their_states_loosely_and_jumps():
     """Resumed at round 2 of 40, its parameters far from the team's (0.8 of their norm: beyond the
     plain check's 0.5); two neighbours vouch for round 20 and it jumps there, judging their States
