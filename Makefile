@@ -1,6 +1,7 @@
 # swarmmap: `make run` sets up and runs the demo, `make test` sets up and runs the tests (unit and
 # end to end), `make test-deploy` the deploy tier (real Docker engine and SLURM cluster, set up
-# from ../shared/kit; needs root), `make test-faults` the fault trials (learners killed at random rounds).
+# from ../shared/kit; needs root), `make test-faults` the fault trials (learners killed at random rounds),
+# `make test-network` a team across network namespaces (routers killed, links cut; needs root).
 PYTHON ?= python3
 VENV ?= .venv
 # The torch build to install when the venv has none (CPU-only machines: the 2.13.0 CPU wheel;
@@ -9,7 +10,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 RUN_ARGS ?=
 
-.PHONY: setup run test test-deploy test-faults clean
+.PHONY: setup run test test-deploy test-faults test-network clean
 
 $(BIN)/swarmmap: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,10 +24,13 @@ run: setup
 	$(BIN)/swarmmap up --preset demo $(RUN_ARGS)
 
 test: setup
-	$(BIN)/python -m pytest -ra --durations=15 -m "not deploy and not faults"
+	$(BIN)/python -m pytest -ra --durations=15 -m "not deploy and not faults and not network"
 
 test-faults: setup
 	$(BIN)/python -m pytest -ra -m faults
+
+test-network: setup
+	$(BIN)/python -m pytest -ra -m network tests/network
 
 test-deploy: setup
 	$(BIN)/python -m pytest -ra -m deploy tests/deploy

@@ -42,6 +42,34 @@ def test_a_learner_that_leaves_and_is_not_back_in_time_fails_the_run():
     assert not ok and reason.startswith("learner 0 left before finishing") and "not back within 20 s" in reason
 
 
+def test_a_learner_whose_host_is_unreachable_has_the_longer_wait_and_the_rejoin_window_from_its_return():
+    t = RunTracker(2, rejoin_timeout=20, unreachable_timeout=600)
+    for i in range(2):
+        t.on_alive("learner", str(i), True, now=0)
+        t.on_alive("router", f"r{i}", True, now=0)
+    t.on_alive("learner", "1", False, now=10)
+    t.on_alive("router", "r1", False, now=11)  # a cut: its host's router is gone too
+    assert t.outcome(now=300) is None  # 290 s away, unreachable: waited for
+    t.on_alive("router", "r1", True, now=400)  # the link is back; the learner's token comes a moment later
+    assert t.outcome(now=401) is None  # 20 s from its host's return, not from its leaving
+    t.on_alive("learner", "1", True, now=402)
+    assert t.outcome(now=500) is None
+    assert [(a["robot"], a["back_after_s"]) for a in t.absences] == [(1, 392.0)]
+    t.on_alive("learner", "0", False, now=510)  # a learner that leaves while its host is there: 20 s
+    ok, why = t.outcome(now=531)
+    assert not ok and why.startswith("learner 0 left before finishing") and "unreachable" not in why
+
+
+def test_an_unreachable_host_that_stays_away_fails_the_run_naming_it():
+    t = RunTracker(2, rejoin_timeout=20, unreachable_timeout=60)
+    t.on_alive("learner", "1", True, now=0)
+    t.on_alive("learner", "1", False, now=5)
+    t.on_alive("router", "r1", False, now=6)
+    assert t.outcome(now=60) is None
+    ok, why = t.outcome(now=66)
+    assert not ok and "its host r1 unreachable" in why and "not back within 60 s" in why
+
+
 def test_a_learner_that_leaves_before_finishing_fails_the_run_and_is_named():
     t = RunTracker(3)
     for i in range(3):
