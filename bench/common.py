@@ -15,11 +15,12 @@ from tests.conftest import SWARMMAP, clean_env  # noqa: E402
 
 def up_run(run_dir: Path, args: list[str]) -> dict:
     """The summary of ``swarmmap up --run-dir RUN_DIR ARGS``, running it unless its summary is
-    there already (its console goes to ``RUN_DIR.log``)."""
+    there already (its console goes to ``RUN_DIR.log``); one that was interrupted is resumed."""
     if not (run_dir / "summary.json").exists():
         t0 = time.monotonic()
-        with open(f"{run_dir}.log", "w") as out:
-            subprocess.run([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], stdout=out, stderr=subprocess.STDOUT,
+        resume = ["--resume"] if run_dir.exists() else []
+        with open(f"{run_dir}.log", "a") as out:
+            subprocess.run([*SWARMMAP, "up", "--run-dir", str(run_dir), *resume, *args], stdout=out, stderr=subprocess.STDOUT,
                            env=clean_env(), timeout=4 * 3600)
         print(f"  ({run_dir.name}: {time.monotonic() - t0:.0f} s)", flush=True)
     return json.loads((run_dir / "summary.json").read_text())
