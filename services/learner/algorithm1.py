@@ -190,14 +190,7 @@ class Algorithm1:
         self.buf.keep_from(msg.round)
         self.rnd, self.updated, self.round_started = msg.round, False, now
         self.buf.states[self.rnd][j] = msg.params
-        peers = dict(self.buf.states[self.rnd])
-        if behind > REUNION_ROUNDS:  # its parameters are of a much earlier stage of the training than the team's
-            self.state = np.median(np.stack(list(peers.values())), axis=0).astype(self.state.dtype)
-            log.info("node %d: %d rounds behind its team, it goes on from %s of round %d (its own data stays in its loss)",
-                     self.node_id, behind, f"the median of neighbours {sorted(peers)}' States" if len(peers) > 1
-                     else f"neighbour {j}'s State", self.rnd)
-        elif self.rejoin is not None:
-            self.state = self.rejoin(self.state, peers)
+        self.state = jump_start(self.node_id, self.state, dict(self.buf.states[self.rnd]), behind, self.rnd, self.rejoin)
         self.round_state = self.state
         self.members.jumped(j, set(self.buf.states[self.rnd]), self.rnd)
         self.stats.caught_up += 1
@@ -213,6 +206,20 @@ class Algorithm1:
         t0 = time.perf_counter()
         self.transport.send_round_complete(self.rnd)
         self.stats.send_s += time.perf_counter() - t0
+
+
+def jump_start(node_id: int, own: np.ndarray, peers: dict[int, np.ndarray], behind: int, rnd: int,
+               rejoin: Rejoin | None) -> np.ndarray:
+    """The State a node that catches up ``behind`` rounds to round ``rnd`` goes on from: more than
+    REUNION_ROUNDS behind (it waited alone through a partition), its own parameters are of a much
+    earlier stage of the training than its team's: the neighbours' States of the round (their
+    median), its own data staying in its loss; else ``rejoin``'s (its own)."""
+    if behind > REUNION_ROUNDS:
+        log.info("node %d: %d rounds behind its team, it goes on from %s of round %d (its own data stays in its loss)",
+                 node_id, behind, f"the median of neighbours {sorted(peers)}' States" if len(peers) > 1
+                 else f"neighbour {next(iter(peers))}'s State", rnd)
+        return np.median(np.stack(list(peers.values())), axis=0).astype(own.dtype)
+    return rejoin(own, peers) if rejoin is not None else own
 
 
 class RoundLoop:

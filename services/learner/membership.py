@@ -77,6 +77,28 @@ class RoundBuffer:
         return among - self.complete[rnd]
 
 
+class Reunion:
+    """A neighbour left out because it was gone or silent (a lost host, a cut link) learnt apart
+    meanwhile; once back, its States farther than the screen's limit are taken pulled within it
+    (``clip``), not refused, for REUNION_ROUNDS rounds, so two parts of a team meet again."""
+
+    def __init__(self, clip: Clip | None):
+        self.clip = clip
+        self.away: set[int] = set()  # left out as gone or silent
+        self.until: dict[int, int] = {}  # neighbour -> the last round its far States are pulled in
+
+    def __call__(self, j: int, rnd: int) -> bool:
+        """Whether neighbour ``j``'s States of round ``rnd`` are taken pulled in when far: it was left
+        out as gone or silent, and is not back yet or came back at most REUNION_ROUNDS ago."""
+        return self.clip is not None and (j in self.away or rnd <= self.until.get(j, -1))
+
+    def back(self, j: int, rnd: int) -> None:
+        """Neighbour ``j`` is waited for again from round ``rnd``: a reunion when it had been away."""
+        if j in self.away:
+            self.away.discard(j)
+            self.until[j] = rnd + REUNION_ROUNDS
+
+
 class Membership:
     """The neighbours a node's rounds wait for, and when each was last heard."""
 
@@ -91,23 +113,7 @@ class Membership:
         self.banned: set[int] = set()  # said two different things for one round: never heard again
         self.lost_since: dict[int, float] = {}
         self.alone_since: float | None = None
-        # Reunion: a neighbour left out because it was gone or silent (a lost host, a cut link) learnt
-        # apart meanwhile; once back, its States farther than the screen's limit are taken pulled
-        # within it (``clip``), not refused, for REUNION_ROUNDS rounds, so two parts of a team meet again.
-        self.clip = clip
-        self.away: set[int] = set()
-        self.reunion: dict[int, int] = {}  # neighbour -> the last round its far States are pulled in
-
-    def reuniting(self, j: int, rnd: int) -> bool:
-        """Whether neighbour ``j``'s States of round ``rnd`` are taken pulled in when far (a reunion):
-        it was left out as gone or silent, and is not back yet or came back at most REUNION_ROUNDS ago."""
-        return self.clip is not None and (j in self.away or rnd <= self.reunion.get(j, -1))
-
-    def _back(self, j: int, rnd: int) -> None:
-        """Neighbour ``j`` is waited for again from round ``rnd``: a reunion when it had been away."""
-        if j in self.away:
-            self.away.discard(j)
-            self.reunion[j] = rnd + REUNION_ROUNDS
+        self.reunion = Reunion(clip)
 
     def heard_from(self, j: int, now: float) -> None:
         self.heard[j] = now
@@ -116,7 +122,7 @@ class Membership:
         """Whether a neighbour's State passes ``check`` (against ``own``); a refused one is counted,
         and when the neighbour's refused States began is kept (it is left out if they go on)."""
         why = check(msg.params, own) if check is not None else None
-        if why is not None and own is not None and self.reuniting(msg.sender, msg.round) and hasattr(check, "loose"):
+        if why is not None and own is not None and self.reunion(msg.sender, msg.round) and hasattr(check, "loose"):
             why = check.loose(msg.params, own)  # far is expected after learning apart: pulled in at the update
         if why is None:
             self.refused_since.pop(msg.sender, None)
@@ -131,7 +137,7 @@ class Membership:
         together (``screen``: the outliers are refused for this round, counted; an honest node far
         from the rest is refused only while it is), then, for the others, their late States
         (poor links). Neighbours with neither are counted as missed."""
-        fresh = {j: self.clip(peers[j], own) if self.reuniting(j, rnd) else peers[j] for j in self.active & peers.keys()}
+        fresh = {j: self.reunion.clip(peers[j], own) if self.reunion(j, rnd) else peers[j] for j in self.active & peers.keys()}
         refused = screen(own, fresh) if screen is not None and fresh else {}
         for j, why in refused.items():
             refuse(self.stats, self.node_id, Envelope("state", j, rnd), why, "outlier")
@@ -184,7 +190,7 @@ class Membership:
             return
         if now_round:
             self.active.add(j)
-            self._back(j, rnd)
+            self.reunion.back(j, rnd)
             self.stats.rejoined += 1
             log.info("node %d: neighbour %d back in round %d", self.node_id, j, rnd)
         else:
@@ -201,7 +207,7 @@ class Membership:
             log.info("node %d: neighbour(s) %s back from round %d", self.node_id, sorted(self.returning), rnd)
             self.active.update(self.returning)
             for j in self.returning:
-                self._back(j, rnd)
+                self.reunion.back(j, rnd)
             self.stats.rejoined += len(self.returning)
             self.returning.clear()
 
@@ -211,7 +217,7 @@ class Membership:
         self.active = {j} | (self.active & present)
         self.returning = set(self.neighbours) - self.active - self.banned
         for k in self.active:
-            self._back(k, rnd)
+            self.reunion.back(k, rnd)
 
     def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
@@ -222,10 +228,10 @@ class Membership:
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
-                self.away.add(j)
+                self.reunion.away.add(j)
             elif now - self.heard[j] > r.silent_after:
                 self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
-                self.away.add(j)
+                self.reunion.away.add(j)
             elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
                 self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
         if self.neighbours and not self.active:
