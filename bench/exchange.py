@@ -1,6 +1,6 @@
 """Algorithm 1's State exchange through the project's Bus and codec against raw Zenoh.
 
-    python bench/exchange.py [--trips 200] [--sizes dinno,paper]
+    python bench/exchange.py [--trips 200] [--sizes dinno,paper] [--secure]
 
 Two real processes on loopback (Zenoh peers, TCP, no TLS for both paths so that only the
 project's own layers differ). The bench process is learner 0; a second process, started
@@ -19,6 +19,12 @@ with ``--role echo`` afresh for each size, is learner 1; both use the learner's 
   puts them back. So both paths have the same threads, and the difference is the project's
   Bus, codec, validation and transport.
 
+``--secure``: the same two learners as a secure run has them, each a client of its run's
+router over mutual TLS with credentials of its own (``shared/secrets.py``), the router (a
+process of its own) enforcing the run's access policy; the raw path is two bare sessions with
+the same certificates through a second router with TLS and no access control. So both paths
+cross TLS and a router, and the difference is the project's layers and the policy.
+
 One-way time is half the median round trip (the two paths' trips interleaved in blocks). Serialisation is the encode (stamp the frame) +
 decode (validate, finiteness included) time of one State, measured in the bench process, as a
 share of the project's one-way time; the JSON also gives ``encode_copy_s``, the encode of a
@@ -34,8 +40,10 @@ import socket
 import statistics
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,11 +51,12 @@ import zenoh
 
 from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
-from swarmmap.shared.bus import Bus
+from swarmmap.shared.bus import Bus, zenoh_config
 from swarmmap.shared.config import ZenohSettings
 from swarmmap.shared.models import param_count
 from swarmmap.shared.networks import build_model
 from swarmmap.shared.protocol import Keys, State, StateFrame, decode, encode_state
+from swarmmap.shared.secrets import access_policy, write_credentials
 
 RUN = "bench-exchange"
 SIZES = {
@@ -62,9 +71,33 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def settings(listen: str | None, connect: str | None) -> ZenohSettings:
+def settings(listen: str | None, connect: str | None, secrets: Path | None = None) -> ZenohSettings:
+    """Peers over plain TCP, or (``secrets``) a secure client of the router at ``connect``."""
+    if secrets is not None:
+        return ZenohSettings(mode="client", connect=[connect], secrets=secrets)
     return ZenohSettings(mode="peer", listen=[listen] if listen else ["tcp/127.0.0.1:0"],
                          connect=[connect] if connect else [], multicast_scouting=False, insecure=True)
+
+
+def raw_session(endpoint: str, secrets: Path | None, who: str) -> zenoh.Session:
+    """A bare Zenoh session for the raw path: the same transport as the project's (``secrets``: a
+    TLS client of the raw router, with ``who``'s certificate), none of its layers."""
+    if secrets is None:
+        return zenoh.open(zenoh_config(settings(None, endpoint), who))
+    return zenoh.open(zenoh_config(settings(None, endpoint, secrets), who, RUN))
+
+
+def router(endpoint: str, secrets: Path, policy: bool) -> None:
+    """A router of the run over TLS: with the run's access policy (the project's path) or with
+    none (the raw path); until the bench terminates this process."""
+    conf = zenoh_config(ZenohSettings(mode="router", listen=[endpoint], secrets=secrets), "router-0", RUN,
+                        access_policy(Keys("swarmmap", RUN), 2))
+    if not policy:
+        conf.insert_json5("access_control", json.dumps({"enabled": False}))
+    session = zenoh.open(conf)
+    print("ready", flush=True)
+    threading.Event().wait()
+    session.close()
 
 
 def values(size: str) -> int:
@@ -72,12 +105,13 @@ def values(size: str) -> int:
     return param_count(build_model(shape, 5.0, (0.0, 0.0, 1.0, 1.0), 0, kind))
 
 
-def echo(endpoint: str, size: str) -> None:
+def echo(endpoint: str, size: str, raw_endpoint: str | None, secrets: Path | None) -> None:
     """Learner 1: send back every State (through the learner's own transport) and every raw payload."""
-    bus = Bus.open(settings(None, endpoint), Keys("swarmmap", RUN), "learner", 1)
-    raw_back = bus.session.declare_publisher("bench/raw/back", congestion_control=zenoh.CongestionControl.BLOCK)
+    bus = Bus.open(settings(None, endpoint, secrets), Keys("swarmmap", RUN), "learner", 1)
+    raw = bus.session if secrets is None else raw_session(raw_endpoint, secrets, "learner-1")
+    raw_back = raw.declare_publisher("bench/raw/back", congestion_control=zenoh.CongestionControl.BLOCK)
     raw_out: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-    bus.session.declare_subscriber("bench/raw/out", lambda s: raw_out.put(s.payload.to_bytes()))
+    raw.declare_subscriber("bench/raw/out", lambda s: raw_out.put(s.payload.to_bytes()))
 
     def raw_echo() -> None:
         while True:
@@ -134,23 +168,41 @@ def timed(call, reps: int) -> float:
     return statistics.median(times)
 
 
-def measure(size: str, trips: int) -> dict:
+def start(*args: str) -> subprocess.Popen:
+    """This script in another role, once it says it is ready."""
+    proc = subprocess.Popen([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready", f"the {args[1]} process did not start"
+    return proc
+
+
+def measure(size: str, trips: int, secure: bool = False) -> dict:
     """One size, between this process and a fresh echo process (each with the transport a
-    learner of that size has); prints the headline and returns the figures."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = Bus.open(settings(endpoint, None), Keys("swarmmap", RUN), "learner", 0)
-    peer = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--endpoint", endpoint, "--sizes", size],
-                            stdout=subprocess.PIPE, text=True)
+    learner of that size has; ``secure``: each a TLS client of a router of its own path);
+    prints the headline and returns the figures."""
+    helpers, secrets, raw = [], None, None
+    if secure:
+        secrets = Path(tempfile.mkdtemp(prefix="bench-exchange-")) / "secrets"
+        write_credentials(secrets, RUN, ["router-0", "learner-0", "learner-1"], ["127.0.0.1", "localhost"])
+        endpoint, raw_endpoint = (f"tls/127.0.0.1:{free_port()}" for _ in range(2))
+        helpers += [start("--role", "router", "--endpoint", endpoint, "--secrets", str(secrets)),
+                    start("--role", "raw-router", "--endpoint", raw_endpoint, "--secrets", str(secrets))]
+        bus = Bus.open(settings(None, endpoint, secrets), Keys("swarmmap", RUN), "learner", 0)
+        raw = raw_session(raw_endpoint, secrets, "learner-0")
+        echo_args = ["--endpoint", endpoint, "--raw-endpoint", raw_endpoint, "--secrets", str(secrets)]
+    else:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        bus = Bus.open(settings(endpoint, None), Keys("swarmmap", RUN), "learner", 0)
+        raw, echo_args = bus.session, ["--endpoint", endpoint]
     try:
-        assert peer.stdout.readline().strip() == "ready", "the echo process did not start"
+        helpers.append(start("--role", "echo", "--sizes", size, *echo_args))
         deadline = time.monotonic() + 20
         while ("learner", "1") not in bus.alive("learner"):
             if time.monotonic() > deadline:
                 raise SystemExit("the echo process never joined")
             time.sleep(0.1)
         raw_in: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-        bus.session.declare_subscriber("bench/raw/back", lambda s: raw_in.put(s.payload.to_bytes()))
-        raw_out = bus.session.declare_publisher("bench/raw/out", congestion_control=zenoh.CongestionControl.BLOCK)
+        raw.declare_subscriber("bench/raw/back", lambda s: raw_in.put(s.payload.to_bytes()))
+        raw_out = raw.declare_publisher("bench/raw/out", congestion_control=zenoh.CongestionControl.BLOCK)
         n = values(size)
         transport = StateCodec(ZenohTransport(bus, 0, {1}, n), 0)
         params = transport.new_state(n)  # this learner's State, as its node writes it
@@ -163,16 +215,21 @@ def measure(size: str, trips: int) -> dict:
 
         trip = median_trips({"project": (lambda r: transport.send_state(r, params), receive_state),
                              "raw": (lambda r: raw_out.put(payload), lambda: raw_in.get(timeout=10))}, trips)
-        project, raw = trip["project"] / 2, trip["raw"] / 2
+        project, raw_s = trip["project"] / 2, trip["raw"] / 2
     finally:
-        peer.terminate()
-        peer.wait(10)
+        for proc in helpers:
+            proc.terminate()
+            proc.wait(10)
+        if raw is not bus.session:
+            raw.close()
         bus.close()
     enc, dec, enc_copy = serialisation(n)
-    print(f"State exchange, {SIZES[size][0]} size {len(payload) / 1e6:.2f} MB: {project * 1e3:.2f} ms one-way, "
-          f"{project / raw:.2f}x raw Zenoh ({raw * 1e3:.2f} ms), serialisation {100 * (enc + dec) / project:.0f}% "
+    path, ref = (", secure path (TLS clients of a router with the access policy)", "raw Zenoh with TLS through a router") \
+        if secure else ("", "raw Zenoh")
+    print(f"State exchange{path}, {SIZES[size][0]} size {len(payload) / 1e6:.2f} MB: {project * 1e3:.2f} ms one-way, "
+          f"{project / raw_s:.2f}x {ref} ({raw_s * 1e3:.2f} ms), serialisation {100 * (enc + dec) / project:.0f}% "
           f"(encode {enc * 1e3:.2f} ms, decode {dec * 1e3:.2f} ms)", flush=True)
-    return {"bytes": len(payload), "project_s": project, "raw_s": raw, "encode_s": enc, "decode_s": dec,
+    return {"bytes": len(payload), "secure": secure, "project_s": project, "raw_s": raw_s, "encode_s": enc, "decode_s": dec,
             "encode_copy_s": enc_copy}
 
 
@@ -181,14 +238,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trips", type=int, default=200)
     ap.add_argument("--sizes", default="dinno,paper")
-    ap.add_argument("--role", default="bench", choices=["bench", "echo"])
+    ap.add_argument("--secure", action="store_true", help="TLS clients of a router, as a secure run (the default) has them")
+    ap.add_argument("--role", default="bench", choices=["bench", "echo", "router", "raw-router"])
     ap.add_argument("--endpoint", default=None)
+    ap.add_argument("--raw-endpoint", default=None)
+    ap.add_argument("--secrets", type=Path, default=None)
     args = ap.parse_args()
     sizes = args.sizes.split(",")
     if args.role == "echo":
-        echo(args.endpoint, sizes[0])
+        echo(args.endpoint, sizes[0], args.raw_endpoint, args.secrets)
         return
-    print(json.dumps({size: measure(size, args.trips) for size in sizes}))
+    if args.role in ("router", "raw-router"):
+        router(args.endpoint, args.secrets, policy=args.role == "router")
+        return
+    print(json.dumps({size: measure(size, args.trips, args.secure) for size in sizes}))
 
 
 if __name__ == "__main__":
