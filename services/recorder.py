@@ -271,9 +271,11 @@ class StallWatch:
         self._lock = threading.Lock()
 
     def on_metrics(self, m: Metrics, now: float | None = None) -> None:
-        """A learner reported: progress, and its newest round."""
+        """A learner reported: progress when its round is newer or it has just finished (a finished
+        learner says its final Metrics again until the run is over: no progress), and its newest round."""
         with self._lock:
-            self.last = time.monotonic() if now is None else now
+            if m.round > self.rounds.get(m.sender, -1) or (m.final and m.sender not in self.finished):
+                self.last = time.monotonic() if now is None else now
             if m.sender < self.robots:
                 self.rounds[m.sender] = max(m.round, self.rounds.get(m.sender, -1))
                 if m.final:

@@ -162,6 +162,10 @@ def test_a_stall_names_the_learners_that_reported_nothing_then_the_lowest():
     assert w.held_up_by() == [0] and "learner(s) [0] are at round 40, the lowest (the team's newest is 60)" in w.stalled(now=45)
     w.on_metrics(metrics(0, 60, final=True), now=46)
     assert w.held_up_by() == [1, 2]  # the one that finished holds nothing up
+    for t in (50, 54, 58):  # a finished learner says its final Metrics again, an old round comes late: no progress
+        w.on_metrics(metrics(0, 60, final=True), now=t)
+        w.on_metrics(metrics(1, 20), now=t)
+    assert "learner(s) [1, 2] are at round 60" in w.stalled(now=56.5)
 
 
 def test_the_recorder_refuses_a_finished_run_and_a_run_directory_it_cannot_write(tmp_path, capsys):
