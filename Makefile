@@ -30,6 +30,9 @@ test-faults: setup
 	$(BIN)/python -m pytest -ra -m faults
 
 test-network: setup
+	@command -v nft >/dev/null || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null || \
+	  (echo "installing nftables (the network tier's packet loss and partitions)"; apt-get update -qq && \
+	   DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nftables >/dev/null)
 	$(BIN)/python -m pytest -ra -m network tests/network
 
 test-deploy: setup

@@ -32,6 +32,7 @@ import json
 import logging
 import os
 import select
+import shutil
 import subprocess
 import sys
 import threading
@@ -159,6 +160,9 @@ class Network:
 
     def create(self) -> None:
         """Make the switch, the robot hosts and their links; on a failure, remove what was made."""
+        if missing := [tool for tool in ("ip", "tc", "nft") if shutil.which(tool) is None]:
+            raise NetnsError(f"{', '.join(missing)} not installed: --netns needs iproute2 (ip, tc) and nftables (nft), "
+                             f"e.g. `apt-get install iproute2 nftables`")
         self.remove(quiet=True)  # what an earlier attempt of this run left, if anything
         self.subnet = self.subnet or str(free_subnet(self.tag))
         prefix = ipaddress.ip_network(self.subnet).prefixlen
