@@ -16,7 +16,7 @@ import logging
 import threading
 import time
 
-from swarmmap.shared.bus import Bus
+from swarmmap.shared.bus import LINKED_ROUTER_CLOSES_STUCK_S, Bus
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.graphs import GraphError, run_graph
 from swarmmap.shared.protocol import Keys
@@ -46,7 +46,9 @@ def per_host(cfg: RunConfig) -> bool:
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """Serve as a router until stopped."""
-    settings = cfg.zenoh.model_copy(update={"mode": "router"})
+    linked = per_host(cfg) or bool(cfg.zenoh.connect)  # other routers on the far side of its links
+    settings = cfg.zenoh.model_copy(update={"mode": "router", "stuck_s": cfg.zenoh.stuck_s or
+                                            (LINKED_ROUTER_CLOSES_STUCK_S if linked else None)})
     policy = None if settings.insecure else run_policy(cfg)
     with Bus.open(settings, Keys(cfg.key_prefix, cfg.run_id), "router", cfg.router.ident, policy=policy) as bus:
         bus.end_with_run(stop)

@@ -46,6 +46,10 @@ DEFAULT_ROUTER_LISTEN = "tls/[::]:7447"  # Zenoh's default port, TLS only
 # first, long before a publisher would give up on its own link to the router, which would lose
 # what it sends meanwhile to every receiver (bench/slow_subscriber.py).
 ROUTER_CLOSES_STUCK_S, CLIENT_CLOSES_STUCK_S = 2.0, 60.0
+# A router linked to other routers (one per host) waits longer: a 1 Mbit/s link holding a burst
+# (the world's scans at time_scale 0) takes more than 2 s to take the next batch, and closing it
+# loses what was queued (zenoh.stuck_s; bench/links.py).
+LINKED_ROUTER_CLOSES_STUCK_S = 30.0
 
 
 def zenoh_config(settings: ZenohSettings, who: str, run: str = "", policy: dict | None = None) -> zenoh.Config:
@@ -66,7 +70,7 @@ def zenoh_config(settings: ZenohSettings, who: str, run: str = "", policy: dict 
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if scouting is not None:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
-    stuck_s = ROUTER_CLOSES_STUCK_S if mode == "router" else CLIENT_CLOSES_STUCK_S
+    stuck_s = settings.stuck_s or (ROUTER_CLOSES_STUCK_S if mode == "router" else CLIENT_CLOSES_STUCK_S)
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", json.dumps(int(stuck_s * 1e6)))
     return conf
 

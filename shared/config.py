@@ -88,6 +88,10 @@ class ZenohSettings(Section):
     keep_ca: Path | None = Field(
         None, description="swarmmap secrets: keep the run's CA key in this folder (outside zenoh.secrets and the run "
                           "directory) to issue more certificates later; unset: the key is discarded once they are issued")
+    stuck_s: float | None = Field(
+        None, gt=0, description="how long a session waits on a link that takes nothing before it closes the link (unset: "
+                                "2 s for a router alone, so a stuck member cannot hold up the others; 30 s for a router "
+                                "linked to other routers, whose slow link is busy, not dead; 60 s for every other service)")
     connect_timeout_s: float = Field(
         60.0, gt=0, description="a client session (every service but the router, with TLS) waits this long for the router at start")
     insecure: bool = Field(

@@ -22,8 +22,13 @@ def die_with_parent() -> None:
 
 
 def setup_logging(level: str, name: str) -> logging.Logger:
-    """Log lines as ``time level service: message`` on stderr."""
+    """Log lines as ``time level service: message`` on stderr; with ``RUST_LOG`` set (e.g.
+    ``RUST_LOG=zenoh=debug``), Zenoh's own log too."""
     logging.basicConfig(level=level.upper(), format=f"%(asctime)s %(levelname)s {name}: %(message)s")
+    if os.environ.get("RUST_LOG"):
+        import zenoh
+
+        zenoh.init_log_from_env_or("error")
     return logging.getLogger(name)
 
 
