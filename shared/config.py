@@ -315,6 +315,11 @@ class LearnerSettings(Section):
         "none", description="State encoding on the wire: float32, half precision, bfloat16, or differences with error "
                             "feedback: top-k, the sign of every value with a scale per 256, every value quantised "
                             "to quant_bits with a step per 256, or each weight matrix as a rank-lowrank_rank product")
+    slow_link_compression: Literal["none", "f16", "bf16", "quant"] = Field(
+        "none", description="with compression none over Zenoh: when a learner's rounds wait mostly for its neighbours' "
+                             "States (a median wait twice its training, at least 0.25 s, over 20 rounds), its links set "
+                             "the pace and its States go out with this encoding from then on, said in its log (none: never; "
+                             "quant suits a radio link; a switch depends on timing, so two such runs may differ)")
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
     quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value before Huffman coding (2-8)")
     lowrank_rank: int = Field(1, ge=1, le=64, description="lowrank: rank of each weight matrix's update (PowerGossip; "

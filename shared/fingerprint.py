@@ -68,8 +68,8 @@ COUNTED: dict[str, tuple[str, ...]] = {
                 "mc_samples", "unseen_weight", "unseen_prior_std", "unseen_points", "unseen_draws", "unseen_margin_m",
                 "share_coverage", "optimizer_per_round", "siren_scale", "data", "window_scans", "eval_every", "map_resolution_m",
                 "max_state_distance", "consensus", "consensus_min_weight", "sigma_memory_rounds", "exchange_every",
-                "exchange_every_s", "stale_rounds", "round_wait_s", "compression", "topk_density", "quant_bits", "lowrank_rank",
-                "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor", "sigma_max_weight"),
+                "exchange_every_s", "stale_rounds", "round_wait_s", "compression", "slow_link_compression", "topk_density",
+                "quant_bits", "lowrank_rank", "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor", "sigma_max_weight"),
     "faults": ("link_success", "duplicate", "delay_s", "links", "seed", "per_round", "attack", "attackers"),
 }
 

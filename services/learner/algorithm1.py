@@ -51,6 +51,7 @@ from swarmmap.services.learner.exchange import (
     refuse,
 )
 from swarmmap.services.learner.membership import REUNION_ROUNDS, LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.transport import Envelope, Transport
 
 log = logging.getLogger("learner")
@@ -96,7 +97,7 @@ class Algorithm1:
         busy_since = time.monotonic()
         used = self.members.round_states(self.screen, self.state, peers, self.late, self.rnd)
         self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
-        self.members.paused(time.monotonic() - busy_since)
+        self.stats.update_s += self.members.paused(time.monotonic() - busy_since)
         self.updated = True
         self.send_complete()
         return True
@@ -225,11 +226,14 @@ def jump_start(node_id: int, own: np.ndarray, peers: dict[int, np.ndarray], behi
 class RoundLoop:
     """Drives an :class:`Algorithm1` over its transport: listens for messages, looks every
     CHECK_EVERY_S for neighbours gone or silent, resends the round's messages after
-    ``resend_after`` seconds without progress, and waits for the final States."""
+    ``resend_after`` seconds without progress, notes each round's wait and training (``pace``),
+    and waits for the final States."""
 
-    def __init__(self, machine: Algorithm1):
+    def __init__(self, machine: Algorithm1, pace: Pace | None = None):
         self.m = machine
+        self.pace = pace if pace is not None else Pace(machine.node_id)
         self.last_progress = time.monotonic()
+        self.round_mark = (0, 0.0, 0.0)  # a round, and the wait and update seconds when it began
 
     def run(self, state: np.ndarray, rounds: int, start_round: int = 0, resumed: bool = False) -> np.ndarray:
         """Run rounds ``start_round .. rounds - 1`` from ``state``; return the final state. After
@@ -239,11 +243,12 @@ class RoundLoop:
         m.begin(state, rounds, start_round, resumed)
         m.send_state()
         last_check = self.last_progress = time.monotonic()
+        self.round_mark = (m.rnd, m.stats.wait_s, m.stats.update_s)
         while m.rnd < rounds:
             if m.stop is not None and m.stop.is_set():
                 raise InterruptedError(f"node {m.node_id} stopped at round {m.rnd}")
             if m.advance():
-                self.last_progress = time.monotonic()
+                self.progress()
             if m.rnd >= rounds:
                 break
             now = time.monotonic()
@@ -254,6 +259,16 @@ class RoundLoop:
             self.listen()
         m.stats.final_peers = self.final_states()
         return m.state
+
+    def progress(self) -> None:
+        """Rounds moved: note each finished round's pace."""
+        m = self.m
+        self.last_progress = time.monotonic()
+        rnd, wait, busy = self.round_mark
+        if m.rnd == rnd + 1:  # (a jump is no round's pace)
+            self.pace.round_done(m.rnd, m.stats.wait_s - wait, m.stats.update_s - busy)
+        if m.rnd != rnd:
+            self.round_mark = (m.rnd, m.stats.wait_s, m.stats.update_s)
 
     def housekeeping(self, now: float) -> None:
         """Leave out the neighbours this round waits on that are gone or silent; resend this

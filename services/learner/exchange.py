@@ -64,6 +64,7 @@ class ExchangeStats:
 
     wait_s: float = 0.0
     send_s: float = 0.0
+    update_s: float = 0.0  # in node updates (a compute slot's wait included)
     rounds_done: int = 0
     resends: int = 0
     final_peers: dict[int, np.ndarray] = field(default_factory=dict)

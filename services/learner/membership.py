@@ -169,13 +169,14 @@ class Membership:
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
 
-    def paused(self, busy: float) -> None:
-        """The node computed for ``busy`` seconds: silence counts while it listens, not meanwhile
-        (what the neighbours sent meanwhile waits in its inbox)."""
+    def paused(self, busy: float) -> float:
+        """The node computed for ``busy`` seconds (returned): silence counts while it listens, not
+        meanwhile (what the neighbours sent meanwhile waits in its inbox)."""
         for j in self.heard:
             self.heard[j] += busy
             if j in self.refused_since:
                 self.refused_since[j] += busy
+        return busy
 
     def leave_out(self, j: int, why: str, rnd: int) -> None:
         self.active.discard(j)

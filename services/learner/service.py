@@ -34,6 +34,7 @@ import threading
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
+from functools import partial
 
 import numpy as np
 import torch
@@ -52,6 +53,7 @@ from swarmmap.services.learner.memory_link import MemoryLink
 from swarmmap.services.learner.metrics import consensus_error, validation_bce
 from swarmmap.services.learner.node import warm_up
 from swarmmap.services.learner.outputs import write_outputs
+from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.registry import RuleChoice, make_node, node_inputs
 from swarmmap.services.learner.robust import RoundScreen
 from swarmmap.services.learner.screening import GROUP_FACTOR, StateScreen
@@ -135,8 +137,7 @@ class RobotLearner:
             transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
             transport = hostile(cfg, self.robot, transport, inputs.layout)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
-            if s.compression in CHAINED_ENCODINGS:
-                public = lambda: compressor.replica  # noqa: E731  (the consensus terms use what the neighbours hold)
+            public = partial(public_state, self.codec)  # (the consensus terms use what the neighbours hold)
         self.node = make_node(s.algorithm, inputs, RuleChoice.of(s, self.graph, self.robot, public))
         if (c := inputs.coverage) is not None:
             log.info("robot %d: noise-contrastive prior on %.0f%% of the map (cells of %.2f m farther than %.2f m from its "
@@ -242,13 +243,35 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
     else:
         machine = Algorithm1(learner.robot, learner.neighbours, rounds.exchange_update, transport, rules, check=screen,
                              screen=round_screen, check_stale=stale, rejoin=node.rejoin, stats=learner.stats, stop=stop)
-        final = RoundLoop(machine).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
+        pace = Pace(learner.robot, slow_link(learner))
+        final = RoundLoop(machine, pace).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
     codec, stats = learner.codec, learner.stats
     if codec is not None and (stats.missed or codec.ignored or codec.unusable):
         log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
                  "from neighbours out of range ignored; %d State(s) that could not be rebuilt", learner.robot,
                  stats.missed, codec.ignored, codec.unusable)
     return final
+
+
+def public_state(codec: StateCodec) -> np.ndarray | None:
+    """What the neighbours hold of a node's State: its chain's replica where its States are chained
+    (the encoding may change during a run: a slow link), else None (its own parameters)."""
+    return codec.compressor.replica if codec.compressor.mode in CHAINED_ENCODINGS else None
+
+
+def slow_link(learner: RobotLearner) -> Callable[[], str] | None:
+    """What a learner whose links set the pace does (:mod:`~swarmmap.services.learner.pace`): its
+    States go out as ``learner.slow_link_compression``; None where it keeps its encoding (one
+    chosen already, none asked, or no link but memory)."""
+    s, codec = learner.s, learner.codec
+    if codec is None or s.transport != "zenoh" or s.compression != "none" or s.slow_link_compression == "none":
+        return None
+
+    def compress() -> str:
+        codec.compressor = Compressor(s.slow_link_compression, keyframe_every=s.keyframe_every, bits=s.quant_bits)
+        return s.slow_link_compression + (f" ({s.quant_bits} bits a value)" if s.slow_link_compression == "quant" else "")
+
+    return compress
 
 
 def state_links(learner: RobotLearner, link: Link, compressor: Compressor, coverage: Coverage | None) -> StateCodec:

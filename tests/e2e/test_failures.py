@@ -1,6 +1,7 @@
 """Failures are normal: a learner killed (SIGKILL) at a random round is restarted by ``up``,
 resumes from its checkpoint, rejoins its team and the run finishes as a clean run does; 30%
-of Algorithm 1's messages lost changes nothing; a killed launcher leaves no service behind."""
+of Algorithm 1's messages lost changes nothing; learners on links that set the pace compress their
+States; a killed launcher leaves no service behind."""
 
 from __future__ import annotations
 
@@ -28,6 +29,23 @@ def test_thirty_percent_of_messages_lost_changes_nothing(tmp_path):
     assert "injecting faults" in (tmp_path / "lossy" / "logs" / "learner-0.log").read_text()
     # Algorithm 1 waits for (resent) messages instead of going on without them: the same result.
     assert final_losses(tmp_path / "lossy") == final_losses(tmp_path / "clean")
+
+
+@pytest.mark.faults
+def test_learners_whose_links_set_the_pace_compress_their_states_and_say_so(tmp_path):
+    """Every State and RoundComplete late by up to 0.8 s: each learner waits far longer than it
+    trains, switches its States to 3-bit quant after 20 rounds (learner.slow_link_compression), says so, and the run ends near a
+    clean run's val_bce."""
+    short = ["--rounds", "40"]
+    clean = up(tmp_path / "clean", *SMOKE, *short)
+    assert clean.wait(300) == 0
+    slow = up(tmp_path / "slow", *SMOKE, *short, "--set", "faults.delay_s=0.8", "--set", "learner.slow_link_compression=quant")
+    assert slow.wait(600) == 0
+    for i in range(3):
+        log = (tmp_path / "slow" / "logs" / f"learner-{i}.log").read_text()
+        assert "its links, not its training, set the pace; its States go out as quant" in log
+    for r, bce in final_losses(tmp_path / "slow").items():
+        assert bce < 1.1 * final_losses(tmp_path / "clean")[r], r
 
 
 def test_a_killed_launcher_takes_every_service_with_it(tmp_path):

@@ -22,11 +22,11 @@ COMPLETE3 = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
 
 
 def run_algorithm1(node, neighbours, rounds, state, update, transport, *, start_round=0, resumed=False, stats=None,
-                   stop=None, check_state=None, check_stale=None, rejoin=None, **rules):
+                   stop=None, check_state=None, check_stale=None, rejoin=None, pace=None, **rules):
     """Algorithm 1 at one node as the learner composes it: the round machine driven by a RoundLoop."""
     machine = Algorithm1(node, neighbours, update, transport, ExchangeRules(**rules), check=check_state,
                          check_stale=check_stale, rejoin=rejoin, stats=stats, stop=stop)
-    return RoundLoop(machine).run(state, rounds, start_round, resumed)
+    return RoundLoop(machine, pace).run(state, rounds, start_round, resumed)
 
 
 def run_timed(node, neighbours, rounds, state, update, transport, every_s, *, start_round=0, stats=None, stop=None,

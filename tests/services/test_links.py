@@ -8,10 +8,12 @@ import time
 import numpy as np
 import pytest
 
+from swarmmap.services.learner import pace as pace_module
 from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.exchange import ExchangeStats
 from swarmmap.services.learner.faults import FaultyTransport
 from swarmmap.services.learner.memory_link import MemoryLink
+from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.transport import MemoryHub
 from swarmmap.shared.compression import Compressor
 from swarmmap.shared.config import FaultSettings
@@ -20,9 +22,11 @@ from .test_algorithm1 import COMPLETE3, in_threads, mixing_update, reference, ru
 
 
 def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, faults=None, round_wait=0.0,
-             update=mixing_update, timeout=60):
+             update=mixing_update, timeout=60, paces=None):
     """Every node in a thread, its States through the wire codec (counted), encoded and numbered
-    by a StateCodec; returns results, stats, the hub and what each node put on the wire."""
+    by a StateCodec; returns results, stats, the hub and what each node put on the wire. With
+    ``paces`` (a dict, filled with each node's :class:`Pace`) a node whose links set the pace
+    switches its States to quant, as a learner does."""
     hub = MemoryHub(graph, run="links")
     wire_rounds: dict[int, list[int]] = {i: [] for i in graph}
     stats = {i: ExchangeStats() for i in graph}
@@ -34,8 +38,11 @@ def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, 
         inner.send_body = lambda r, b: (wire_rounds[i].append(r), spy_body(r, b))
         link = FaultyTransport(inner, i, faults) if faults is not None else inner
         codec = StateCodec(link, i, Compressor(compression, density, keyframe_every=10), every)
+        pace = None
+        if paces is not None:
+            pace = paces[i] = Pace(i, lambda: (setattr(codec, "compressor", Compressor("quant", keyframe_every=10)), "quant")[1])
         return run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i], resend_after=0.2,
-                              linger=0.5, round_wait=round_wait, peer_timeout=20)
+                              linger=0.5, round_wait=round_wait, peer_timeout=20, pace=pace)
 
     results, errors = in_threads(graph, node, timeout)
     assert not errors, errors
@@ -91,6 +98,49 @@ def test_half_precision_states_end_near_the_reference(mode):
     ref = reference(COMPLETE3, 8, init)
     for i in COMPLETE3:
         np.testing.assert_allclose(results[i], ref[i], rtol=2e-2, atol=2e-2)
+
+
+def test_a_node_whose_links_set_the_pace_compresses_its_states_and_its_neighbours_follow(monkeypatch, caplog):
+    """Every message late by up to 0.12 s, rounds that compute in microseconds: each node waits far
+    longer than it trains, switches its States to quant after a window of rounds and says so; its
+    neighbours rebuild them (the mixing ends where it would) and fewer bytes go out."""
+    monkeypatch.setattr(pace_module, "SLOW_WINDOW", 5)
+    monkeypatch.setattr(pace_module, "SLOW_MIN_WAIT_S", 0.03)
+    init = init_vectors(COMPLETE3)
+    ref = reference(COMPLETE3, 30, init)
+    paces = {}
+    results, _, hub, _ = run_wire(COMPLETE3, 30, init, faults=FaultSettings(delay_s=0.12), paces=paces)
+    plain = run_wire(COMPLETE3, 30, init)[2]
+    for i in COMPLETE3:
+        assert paces[i].adapted == "quant"
+        np.testing.assert_allclose(results[i], ref[i], atol=1.0)
+        assert plain.bytes_sent[i] / hub.bytes_sent[i] > 2
+    assert caplog.text.count("its links, not its training, set the pace") == 3
+    fast = {}
+    results, _, _, _ = run_wire(COMPLETE3, 30, init, paces=fast)  # no delay: nobody switches
+    assert all(p.adapted is None for p in fast.values())
+    for i in COMPLETE3:
+        np.testing.assert_allclose(results[i], ref[i], rtol=1e-6)
+
+
+def test_the_pace_is_judged_on_medians_of_wait_against_training():
+    switched = []
+    pace = Pace(4, lambda: switched.append(1) or "quant")
+    for r in range(1, 20):  # one long wait (a partition) among fast rounds is no slow link
+        pace.round_done(r, 30.0 if r == 3 else 0.01, 0.05)
+    pace.round_done(20, 0.01, 0.05)
+    assert pace.adapted is None
+    slow_trainer = Pace(4, lambda: "quant")  # waits of 0.4 s against 0.3 s of training: training sets the pace
+    for r in range(1, 40):
+        slow_trainer.round_done(r, 0.4, 0.3)
+    assert slow_trainer.adapted is None
+    for r in range(21, 41):  # then waits of 0.5 s against 0.05 s: the links set the pace, once
+        pace.round_done(r, 0.5, 0.05)
+    assert pace.adapted == "quant" and switched == [1]
+    never = Pace(4)  # no slow_link: a node that keeps its encoding
+    for r in range(1, 40):
+        never.round_done(r, 5.0, 0.05)
+    assert never.adapted is None
 
 
 def test_exchange_every_k_rounds_numbers_states_by_training_round():
