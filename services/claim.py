@@ -96,7 +96,7 @@ def start(environ: dict[str, str] | None = None, serve: bool = False, stop: thre
     try:
         cfg = begin(environ)
         if cfg.zenoh.signer is not None and not cfg.zenoh.insecure:
-            signer = Signer(cfg.zenoh.signer, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect))
+            signer = Signer(cfg.zenoh.signer, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect, cfg.router.hosts))
             log.info("signer of run %s in %s: its CA key is held in this process's memory only", cfg.run_id, cfg.zenoh.signer)
         if folder is not None:
             forget_claims(folder)

@@ -148,7 +148,7 @@ def write_run_secrets(cfg: RunConfig, router_endpoints: list[str] | None = None)
              "keep the CA key elsewhere (e.g. ~/.swarmmap-ca)")
     try:
         issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots, per_host(cfg)),
-                                   router_names(cfg.zenoh.connect + (router_endpoints or [])), keep_ca=keep)
+                                   router_names(cfg.zenoh.connect + (router_endpoints or []), cfg.router.hosts), keep_ca=keep)
     except (SecretsError, OSError) as exc:
         fail(f"config error:\n  zenoh.secrets: {exc}")
     if issued:

@@ -105,6 +105,9 @@ class RouterSettings(Section):
     ident: str = Field("0", pattern=r"^(0|r[0-9]{1,2})$",
                        description="which of the run's routers this is: 0 (the run's router, or the base host's when each "
                                    "host has its own), r<i> (robot i's host; shared/mesh.py)")
+    hosts: list[str] = Field(default_factory=list,
+                             description="more names every router's certificate carries: the hosts on which the routers of "
+                                         "a run with a router per host reach each other (e.g. a SLURM job's nodes)")
 
 
 class WorldSettings(Section):
@@ -760,7 +763,8 @@ LAUNCHER_VARIABLES: dict[str, str] = {
     "SWARMMAP_SIF": "deploy/slurm: the Apptainer/Singularity image to run the services in",
     "SWARMMAP_LEARNER_CPUS": "deploy/slurm/team.sbatch: CPUs per learner task",
     "SWARMMAP_GPUS_PER_LEARNER": "deploy/slurm/team.sbatch: GPUs per learner task",
-    "SWARMMAP_ROUTER_PORT": "deploy/slurm/team.sbatch: the router's port",
+    "SWARMMAP_ROUTER_PORT": "deploy/slurm/team.sbatch: the base router's port (robot i's router, with a router per "
+                            "host: that + 1 + i)",
     "SWARMMAP_END_GRACE_S": "deploy/slurm/team.sbatch: how long the services get to leave once the run is over",
     "SWARMMAP_ROBOT_CLAIMS": "compose.yaml (inside each container): where replicas claim their robot ids",
     "SWARMMAP_VIEWER_PORT": "compose.yaml: the host port of the observer's web viewer (on 127.0.0.1)",

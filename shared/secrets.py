@@ -80,16 +80,16 @@ def own_folder(secrets: Path, who: str, run: str) -> Path:
     return Path(secrets) / cert_name(who, run)
 
 
-def router_names(connect: list[str]) -> list[str]:
+def router_names(connect: list[str], extra: list[str] = ()) -> list[str]:
     """The names the router's certificate carries: the hosts of ``connect`` endpoints (how the
-    clients reach it) and the loopback names."""
+    clients reach it), ``extra`` and the loopback names."""
     hosts = []
     for endpoint in connect:
         address = endpoint.split("/", 1)[-1].split("#")[0].split("?")[0]
         host = address.rsplit(":", 1)[0].strip("[]")
         if host and host not in ("0.0.0.0", "::"):
             hosts.append(host)
-    return list(dict.fromkeys([*hosts, *LOOPBACK_NAMES]))
+    return list(dict.fromkeys([*hosts, *extra, *LOOPBACK_NAMES]))
 
 
 def _name(common_name: str) -> x509.Name:

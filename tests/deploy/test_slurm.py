@@ -2,7 +2,8 @@
 COMPLETED with a whole run directory, and a second job on that run directory is refused; a
 killed learner task ends it FAILED within a minute, naming the learner; ``swarmmap-up.sbatch``
 runs ``swarmmap up`` as one task (the kit's one-node cluster); and ``team.sbatch`` spreads its
-tasks over the three nodes of ``deploy/slurm/local-cluster.sh 3``."""
+tasks over the three nodes of ``deploy/slurm/local-cluster.sh 3``, a router per host linked in a
+ring."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cryptography import x509
 
 from swarmmap.shared.secrets import identities
 from tests.conftest import REPO, recording_entities, wait_until
@@ -133,20 +135,58 @@ def three_nodes():
         run_kit("slurm-local.sh")
 
 
+def router_pid(run_dir: Path, ident: str) -> int | None:
+    """The pid of the router ``--ident IDENT`` of the run in ``run_dir`` (the task, not its srun)."""
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except (OSError, PermissionError):
+            continue
+        if not cmd[0].endswith(b"srun") and b"router" in cmd and any(str(run_dir).encode() in c for c in cmd) and ident.encode() in cmd:
+            return int(proc.name)
+    return None
+
+
 def test_team_job_spreads_its_tasks_over_three_nodes_and_completes(three_nodes, tmp_path):
-    job, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", options=("--nodes", "3"))
-    out = job_output(tmp_path, job)
-    assert proc.returncode == 0 and job_state(job) == "COMPLETED", out
-    assert "3 robots on 3 node(s) (swarm-node[1-3])" in out and "run succeeded: all 3 learners finished" in out, out
+    """A robot on each node beside a router of its own, the routers in a ring; robot 1's router
+    killed mid-run is started again and the run completes."""
+    job, _ = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", options=("--nodes", "3"), wait=False)
     run_dir = tmp_path / "run"
+    try:
+        recorder_log = run_dir / "logs" / "recorder-0.log"
+        assert wait_until(lambda: recorder_log.exists() and "round   10" in recorder_log.read_text(), 600, 0.5), \
+            job_output(tmp_path, job)
+        pid = router_pid(run_dir, "r1")
+        assert pid is not None, "no router with --ident r1"
+        os.kill(pid, signal.SIGKILL)
+        assert wait_until(lambda: job_state(job) not in ("RUNNING", "COMPLETING", "PENDING", "CONFIGURING"), 900, 1)
+    finally:
+        subprocess.run(["scancel", job], capture_output=True, timeout=30)
+    out = job_output(tmp_path, job)
+    assert job_state(job) == "COMPLETED", out
+    assert "3 robots on 3 node(s) (swarm-node[1-3]), a router per host in a ring" in out, out
+    assert "router-r1 (a host's router) exited with status" in out and "starting it again (1 of 3)" in out, out
+    assert "run succeeded: all 3 learners finished" in out, out
     where = {}
     for log in sorted((run_dir / "logs").glob("*.log")):  # each task says where it ran
         found = re.search(rf"SLURM job {job}, task \d+, on node (swarm-node\d)", log.read_text())
         assert found, f"{log.name} names no node"
         where[log.stem] = found[1]
-    assert len(where) == 10 and where["router-0"] == "swarm-node1"
+    # The base services beside the first node's router; each robot's beside a router of its own.
+    assert sorted(where) == sorted(["router-0", "recorder-0", "observer-0", "world-0"] +
+                                   [f"{s}{r}" for s in ("router-r", "learner-", "lidar-") for r in range(3)]), where
+    assert {where[s] for s in ("router-0", "recorder-0", "observer-0", "world-0")} == {"swarm-node1"}, where
     assert {where[f"learner-{r}"] for r in range(3)} == {"swarm-node1", "swarm-node2", "swarm-node3"}, where
+    assert all(where[f"learner-{r}"] == where[f"lidar-{r}"] == where[f"router-r{r}"] for r in range(3)), where
+    # The routers in a ring: each dials the next host's router by its node's name.
+    ring = ["router-0", "router-r0", "router-r1", "router-r2", "router-0"]
+    for a, b in zip(ring, ring[1:]):
+        line = next(x for x in (run_dir / "logs" / f"{a}.log").read_text().splitlines() if " up, listening on " in x)
+        assert f"linking to tls/{where[b]}:" in line, (a, b, line)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["ok"] and all(v["finished"] and v["rounds"] == 60 for v in summary["learners"].values())
-    for name in ("config.yaml", "metrics.csv", "groundtruth.npz", "observer.json", "recording.rrd"):
-        assert (run_dir / name).stat().st_size > 0, name
+    # A certificate per router, each naming every node (the others dial it by its node's name).
+    for name in ("router-0", "router-r0", "router-r1", "router-r2"):
+        cert = x509.load_pem_x509_certificate((run_dir / "secrets" / f"{name}@slurm-{job}" / "cert.pem").read_bytes())
+        names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(x509.DNSName)
+        assert {"swarm-node1", "swarm-node2", "swarm-node3"} <= set(names), (name, names)
