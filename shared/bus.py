@@ -70,6 +70,8 @@ def zenoh_config(settings: ZenohSettings, who: str, run: str = "", policy: dict 
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if scouting is not None:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    if settings.shared_memory is not None:
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     stuck_s = settings.stuck_s or (ROUTER_CLOSES_STUCK_S if mode == "router" else CLIENT_CLOSES_STUCK_S)
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", json.dumps(int(stuck_s * 1e6)))
     return conf
@@ -380,10 +382,13 @@ class Bus:
 
     def query(self, key: str, model: type[M], timeout: float,
               stop: threading.Event | None = None, retry_every: float = 0.5) -> M | None:
-        """Query ``key`` until a valid ``model`` reply comes or ``timeout`` passes."""
+        """Query ``key`` until a valid ``model`` reply comes or ``timeout`` passes. A query that
+        nobody answers yet ends at once and is asked again; one that is answered waits for its reply
+        as long as ``timeout`` allows (a large reply over a slow link: asking again would send it
+        once more, on a link it already fills)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
-            for reply in self.session.get(key, timeout=min(10.0, max(0.5, deadline - time.monotonic()))):
+            for reply in self.session.get(key, timeout=max(0.5, deadline - time.monotonic())):
                 if reply.ok is None:
                     continue
                 payload = reply.ok.payload.to_bytes()
