@@ -10,13 +10,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.conftest
 
+from swarmmap.shared.rundir import run_state  # noqa: E402
 from tests.conftest import SWARMMAP, clean_env  # noqa: E402
 
 
 def up_run(run_dir: Path, args: list[str]) -> dict:
     """The summary of ``swarmmap up --run-dir RUN_DIR ARGS``, running it unless its summary is
     there already (its console goes to ``RUN_DIR.log``); one that was interrupted is resumed."""
-    if not (run_dir / "summary.json").exists():
+    if run_state(run_dir) != "finished":
         t0 = time.monotonic()
         resume = ["--resume"] if run_dir.exists() else []
         with open(f"{run_dir}.log", "a") as out:
