@@ -58,7 +58,8 @@ def main() -> int:
     ap.add_argument("--model", default=None, help="the learners' model (default the preset's), e.g. bnn")
     ap.add_argument("--out", type=Path, default=Path("/tmp/links"))
     a = ap.parse_args()
-    base = ["--preset", a.preset, "--no-observer", "--netns", "--rounds", str(a.rounds)]
+    # Namespaces share /dev/shm: without Zenoh's shared memory the links carry every byte of the States.
+    base = ["--preset", a.preset, "--no-observer", "--netns", "--rounds", str(a.rounds), "--set", "zenoh.shared_memory=false"]
     base += ["--model", a.model] if a.model else []
     base += ["--robots", str(a.robots)] if a.robots else []
     a.out.mkdir(parents=True, exist_ok=True)

@@ -95,10 +95,8 @@ def prepare(cfg: RunConfig) -> RunConfig:
         run_id = (cfg.up.resume and config_doc(cfg.run_dir).get("run_id")) or time.strftime("run-%Y%m%d-%H%M%S")
     run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
     secrets = None if cfg.zenoh.insecure else (cfg.zenoh.secrets or run_dir / "secrets").resolve()
-    # Hosts in namespaces share no memory: their links carry every byte (not a reference to /dev/shm).
-    shm = False if cfg.up.netns and cfg.zenoh.shared_memory is None else cfg.zenoh.shared_memory
     cfg = cfg.model_copy(update={"run_id": run_id, "run_dir": run_dir,
-                                 "zenoh": cfg.zenoh.model_copy(update={"secrets": secrets, "shared_memory": shm})})
+                                 "zenoh": cfg.zenoh.model_copy(update={"secrets": secrets})})
     if cfg.world.dataset:  # every service finds the logs wherever it starts (SLURM tasks, a resumed run)
         world = cfg.world.model_copy(update={"dataset": [str(Path(p).expanduser().resolve()) for p in cfg.world.dataset]})
         cfg = cfg.model_copy(update={"world": world})

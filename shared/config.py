@@ -94,8 +94,8 @@ class ZenohSettings(Section):
                                 "linked to other routers, whose slow link is busy, not dead; 60 s for every other service)")
     shared_memory: bool | None = Field(
         None, description="whether Zenoh passes a large message between processes of one machine through shared memory "
-                          "(/dev/shm) rather than over the link (unset: Zenoh's default, on; up --netns turns it off: its "
-                          "namespaces stand for hosts that share no memory, and their links must carry every byte)")
+                          "(/dev/shm) rather than over the link (unset: Zenoh's default, on). Network namespaces share /dev/shm: "
+                          "set it false with up --netns for the emulated links to carry every byte (bench/links.py does)")
     connect_timeout_s: float = Field(
         60.0, gt=0, description="a client session (every service but the router, with TLS) waits this long for the router at start")
     insecure: bool = Field(
