@@ -63,14 +63,13 @@ def main() -> int:
     base += ["--model", a.model] if a.model else []
     base += ["--robots", str(a.robots)] if a.robots else []
     a.out.mkdir(parents=True, exist_ok=True)
-    reference = None
+    reference, model = None, a.model or "the preset's model"
     for compression in a.compression:
         for rate in a.rates:
             run_dir = a.out / f"{rate}-{compression}"
             summary = up_run(run_dir, base + ["--link-rate", rate, *ENCODINGS[compression]])
             per_round, mean, sent = figures(summary)
             reference = reference or (per_round, mean)
-            model = a.model or "the preset's model"
             case = (f"{a.preset} team ({summary['robots']} robots, {model}, {a.rounds} rounds), {rate} per robot link, "
                     f"compression {compression}")
             print(f"{case}: {per_round:.3f} s a round ({per_round / reference[0]:.2f}x the first case), final mean val_bce "

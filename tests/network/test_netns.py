@@ -131,7 +131,7 @@ def test_a_killed_up_leaves_no_namespace_link_or_service(tmp_path):
     assert "ended without removing its network" in (run_dir / "logs" / "netns-guard.log").read_text()
 
 
-@pytest.mark.timeout(900)  # a run of 800 rounds, the States over the namespaces' links, and a rejoin
+@pytest.mark.timeout(900)  # a run with a router killed and back, on a loaded machine past pytest's 300 s
 def test_a_robot_hosts_router_killed_the_robot_rejoins_and_the_team_ends_as_clean(clean, tmp_path):
     run_dir = tmp_path / "router-killed"
     proc = up(run_dir, *SMOKE)
@@ -150,7 +150,7 @@ def test_a_robot_hosts_router_killed_the_robot_rejoins_and_the_team_ends_as_clea
         assert abs(loss - reference[robot]) <= 0.05 * reference[robot], f"robot {robot}: {loss:.4f} against {reference[robot]:.4f}"
 
 
-@pytest.mark.timeout(1500)  # two runs of 800 rounds, the States over the namespaces' links, and a minute apart
+@pytest.mark.timeout(1500)  # two runs of 800 rounds, one of them a minute apart: past pytest's 300 s when loaded
 def test_a_team_cut_in_two_for_a_minute_meets_again(tmp_path):
     clean_dir, cut_dir = tmp_path / "clean", tmp_path / "cut"
     rounds = ["--rounds", str(PARTITION_ROUNDS)]

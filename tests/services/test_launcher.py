@@ -158,14 +158,3 @@ def test_resume_names_the_run_it_resumes():
     with pytest.raises(ConfigError, match="up.resume: name the run to resume: --run-dir RUN_DIR"):
         prepare(resolve({"up": {"resume": True}}, preset="smoke", environ={}))
 
-
-def test_zenoh_shared_memory_is_zenohs_default_unless_set():
-    """Zenoh passes a large message between processes of one machine through /dev/shm, which
-    network namespaces share: ``zenoh.shared_memory=false`` keeps every byte on the links (what
-    bench/links.py sets under ``up --netns``); unset, Zenoh's default (on) stands."""
-    from swarmmap.shared.bus import zenoh_config
-    from swarmmap.shared.config import ZenohSettings
-
-    off = ZenohSettings(insecure=True, shared_memory=False)
-    assert json.loads(zenoh_config(off, "learner-0").get_json("transport/shared_memory"))["enabled"] is False
-    assert json.loads(zenoh_config(ZenohSettings(insecure=True), "learner-0").get_json("transport/shared_memory"))["enabled"] is True

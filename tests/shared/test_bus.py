@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
-from swarmmap.shared.bus import Bus
+from swarmmap.shared.bus import Bus, zenoh_config
 from swarmmap.shared.config import ConfigError, ZenohSettings
 from swarmmap.shared.protocol import Keys
 
@@ -24,3 +26,12 @@ def test_corrupt_zenoh_file_is_named(tmp_path):
     bad.write_text("{ mode: 'peer', listen: [")
     with pytest.raises(ConfigError, match="z.json5"):
         Bus.open(ZenohSettings(config_file=bad, insecure=True), Keys("swarmmap", "r"), "test")
+
+
+def test_zenoh_shared_memory_is_zenohs_default_unless_set():
+    """Zenoh passes a large message between processes of one machine through /dev/shm, which
+    network namespaces share: ``zenoh.shared_memory=false`` keeps every byte on the links (what
+    bench/links.py sets under ``up --netns``); unset, Zenoh's default (on) stands."""
+    off = ZenohSettings(insecure=True, shared_memory=False)
+    assert json.loads(zenoh_config(off, "learner-0").get_json("transport/shared_memory"))["enabled"] is False
+    assert json.loads(zenoh_config(ZenohSettings(insecure=True), "learner-0").get_json("transport/shared_memory"))["enabled"] is True
