@@ -157,4 +157,3 @@ def test_resume_names_the_run_it_resumes():
 
     with pytest.raises(ConfigError, match="up.resume: name the run to resume: --run-dir RUN_DIR"):
         prepare(resolve({"up": {"resume": True}}, preset="smoke", environ={}))
-
