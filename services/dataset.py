@@ -87,7 +87,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     payload = encode(world_map_message(cfg, team))
     # Every robot's scans in the time order of its own segment (each starts at 0).
     events = sorted((team.time(i, k), i, k) for i, r in enumerate(team.robots) for k in range(len(r.train)))
-    with serving(cfg, payload, stop) as pubs:
+    with serving(cfg, lambda _parameters: payload, stop) as pubs:
         if pubs is None:
             return 0
         start = time.monotonic()

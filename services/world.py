@@ -14,12 +14,13 @@ occupancy.npz and exits.
 
 from __future__ import annotations
 
+import functools
 import io
 import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from swarmmap.shared.mapfiles import save_ros_map, trinary_pixels
 from swarmmap.shared.paths import coverage, path_length, point_along
 from swarmmap.shared.plans import load_floorplan, robot_paths
 from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
-from swarmmap.shared.sensing import beam_angles, validation_set
+from swarmmap.shared.sensing import beam_angles, validation_recipe, validation_set
 
 log = logging.getLogger("world")
 
@@ -177,14 +178,20 @@ def wire_grid(grid: OccupancyGrid) -> np.ndarray:
     return out
 
 
-def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None = None) -> WorldMap:
-    """The ground truth, validation set and final robot positions that the world serves on ``world/map``."""
+def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None = None,
+                      points: bool = True) -> WorldMap:
+    """The ground truth, validation set and final robot positions that the world serves on
+    ``world/map``: the validation set as points, or (``points`` false) as the recipe to draw
+    them from the grid."""
     w, beams = cfg.world, cfg.labelling()  # labelled as the streamers label training points (DiNNO)
-    pts, labels = validation_set(grid, w.val_scans, w.val_beams, w.lidar_max_range_m,
-                                 beams.samples_per_beam, cfg.seed, beams.occupied_depth_m)
+    args = (grid, w.val_scans, w.val_beams, w.lidar_max_range_m, beams.samples_per_beam, cfg.seed, beams.occupied_depth_m)
+    if points:
+        pts, labels = validation_set(*args)
+        val = {"val_points": Tensor.of(pts, "<f4"), "val_labels": Tensor.of(labels, "<f4")}
+    else:
+        val = {"validation": validation_recipe(*args)}
     return WorldMap(run=cfg.run_id, sender=0, resolution=grid.resolution, origin=list(grid.origin),
-                    grid=Tensor.of(wire_grid(grid), "|u1"), val_points=Tensor.of(pts, "<f4"),
-                    val_labels=Tensor.of(labels, "<f4"), robots=cfg.robots,
+                    grid=Tensor.of(wire_grid(grid), "|u1"), robots=cfg.robots, **val,
                     positions=None if paths is None else Tensor.of(np.array([p[-1] for p in paths]), "<f4"))
 
 
@@ -211,15 +218,26 @@ def wait_for_subscribers(pubs: list, stop: threading.Event, timeout: float = 10.
                     ", ".join(p.key for p in waiting))
 
 
+def map_replies(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None) -> Callable[[str], bytes]:
+    """The world's answer to a query on ``world/map`` with these parameters: the validation set
+    as its recipe, or its points when the parameters ask for ``points`` (encoded once, when first
+    asked for)."""
+    recipe = encode(world_map_message(cfg, grid, paths, points=False))
+    with_points = functools.cache(lambda: encode(world_map_message(cfg, grid, paths)))
+    return lambda parameters: (with_points() if any(p.partition("=")[0] == "points" for p in parameters.split(";"))
+                               else recipe)
+
+
 @contextmanager
-def serving(cfg: RunConfig, payload: bytes, stop: threading.Event) -> Iterator[list | None]:
-    """The world's session: ``payload`` (a WorldMap) served on ``world/map``, a scan publisher per
-    robot, announced; yields the publishers once the consumers are alive, or None when the world
-    must not drive (``world.drive`` off: after the run is over; or stopped while waiting)."""
+def serving(cfg: RunConfig, reply: Callable[[str], bytes], stop: threading.Event) -> Iterator[list | None]:
+    """The world's session: ``reply(parameters)`` (an encoded WorldMap) served on ``world/map``,
+    a scan publisher per robot, announced; yields the publishers once the consumers are alive, or
+    None when the world must not drive (``world.drive`` off: after the run is over; or stopped
+    while waiting)."""
     keys = Keys(cfg.key_prefix, cfg.run_id)
     with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
         bus.end_with_run(stop)
-        bus.serve(keys.world_map(), lambda: payload)
+        bus.serve(keys.world_map(), reply)
         pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
         bus.announce()
         if not cfg.world.drive:
@@ -250,7 +268,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     except PlanError as exc:
         log.error("floor plan refused: %s", exc)
         return 2
-    map_payload = encode(world_map_message(cfg, grid, paths))
+    map_reply = map_replies(cfg, grid, paths)
     sim = Simulation(plan, paths, w)
     x0, y0, x1, y1 = plan.bounds
     log.info("rooms: %s", ", ".join(f"{i} {name}" for i, name in enumerate(plan.room_names)))
@@ -263,7 +281,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
              ", ".join(f"{100 * coverage([p], grid, w.lidar_max_range_m):.0f}%" for p in paths),
              100 * coverage(paths, grid, w.lidar_max_range_m))
     try:
-        with serving(cfg, map_payload, stop) as pubs:
+        with serving(cfg, map_reply, stop) as pubs:
             if pubs is None:
                 return 0
             period = 1.0 / w.lidar_rate_hz

@@ -32,11 +32,13 @@ from swarmmap.shared.protocol import (
     Message,
     ProtocolError,
     RunDone,
+    Tensor,
     WorldMap,
     decode,
     encode,
 )
 from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, identity, own_folder
+from swarmmap.shared.sensing import draw_validation
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -365,12 +367,13 @@ class Bus:
         except zenoh.ZError:  # the subscriber was undeclared (the bus closed)
             pass
 
-    def serve(self, key: str, reply: Callable[[], bytes]) -> None:
-        """Answer every query on ``key`` with ``reply()``."""
+    def serve(self, key: str, reply: Callable[[str], bytes]) -> None:
+        """Answer every query on ``key`` with ``reply(parameters)`` (the query's selector
+        parameters, "" when it has none)."""
 
         def handler(query: zenoh.Query) -> None:
             try:
-                payload = reply()
+                payload = reply(str(query.parameters))
             except Exception as exc:
                 log.exception("query on %s failed", key)
                 query.reply_err(str(exc).encode())
@@ -403,7 +406,21 @@ class Bus:
     def world(self, timeout: float, stop: threading.Event | None = None) -> WorldMap | None:
         """The world's map (:meth:`query`); None, logged unless ``stop`` is set, when no reply comes
         within ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
         world = self.query(self.keys.world_map(), WorldMap, timeout, stop)
+        if world is not None and world.validation is not None:
+            points, labels, differs = draw_validation(world)
+            if differs is not None:  # another numpy, say: the world's own points, then
+                log.warning("%s-%s: the validation set drawn here from the world's grid differs from the world's "
+                            "(%s); asking the world for its points", self.service, self.ident, differs)
+                world = self.query(f"{self.keys.world_map()}?points", WorldMap, max(1.0, deadline - time.monotonic()),
+                                   stop)
+                if world is not None and world.val_points is None:
+                    log.error("%s-%s: the world sent no validation points when asked for them", self.service, self.ident)
+                    return None
+            else:
+                world = world.model_copy(update={"val_points": Tensor.of(points, "<f4"),
+                                                 "val_labels": Tensor.of(labels, "<f4"), "validation": None})
         if world is None and not (stop is not None and stop.is_set()):
             log.error("%s-%s: no reply from the world on %s within %.0f s", self.service, self.ident,
                       self.keys.world_map(), timeout)

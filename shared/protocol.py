@@ -428,8 +428,43 @@ class Metrics(Message):
     final: bool = False
 
 
+MAX_VALIDATION_POINTS = 50_000_000  # what a receiver agrees to draw (a few GB at most)
+
+
+class ValidationRecipe(BaseModel):
+    """How a WorldMap's validation set is drawn from its grid
+    (:func:`swarmmap.shared.sensing.validation_set` with these arguments), and figures of the
+    world's own draw to check a receiver's by: ``count`` points, ``occupied`` of them labelled 1,
+    their mean at ``centroid``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    scans: Annotated[int, Field(ge=1, le=100_000)]
+    beams: Annotated[int, Field(ge=1, le=100_000)]
+    max_range: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    samples_per_beam: Annotated[int, Field(ge=1, le=10_000)]
+    seed: int
+    occupied_depth: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    count: Annotated[int, Field(ge=0)]
+    occupied: Annotated[int, Field(ge=0)]
+    centroid: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
+
+    @model_validator(mode="after")
+    def _bounded(self) -> ValidationRecipe:
+        if self.scans * self.beams * (self.samples_per_beam + 1) > MAX_VALIDATION_POINTS:
+            raise ValueError(f"a validation set of more than {MAX_VALIDATION_POINTS} points")
+        if self.occupied > self.count:
+            raise ValueError("more occupied validation points than points")
+        return self
+
+
 class WorldMap(Message):
     """The world's reply on ``world/map``: the ground-truth occupancy grid and a validation set.
+
+    The validation set comes either as ``val_points`` and ``val_labels`` or, from a simulated
+    world (whose grid is the ground truth), as ``validation``: how to draw it from the grid, a
+    few hundred bytes where the points are megabytes (what a team on slow links waits for
+    before it trains). :meth:`swarmmap.shared.bus.Bus.world` draws it and checks it against
+    the world's figures; a query with the parameter ``points`` asks for the points themselves.
 
     ``grid[r, c]`` (0 free, 1 occupied, 2 unknown: a ROS map's cells nobody knows, solid in the
     world and never ground truth) covers x in [origin_x + c*res, +res) and y in
@@ -446,11 +481,12 @@ class WorldMap(Message):
     resolution: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     origin: Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]
     grid: Tensor
-    val_points: Tensor
-    val_labels: Tensor
+    val_points: Tensor | None = None
+    val_labels: Tensor | None = None
     robots: Annotated[int, Field(ge=1, le=10000)]
     positions: Tensor | None = None
     reference: Tensor | None = None
+    validation: ValidationRecipe | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> WorldMap:
@@ -463,10 +499,15 @@ class WorldMap(Message):
             _require(self.positions, "positions", "<f4", 2, (2,))
             if self.positions.shape[0] != self.robots:
                 raise ValueError("positions must hold one row per robot")
-        _require(self.val_points, "val_points", "<f4", 2, (2,))
-        _require(self.val_labels, "val_labels", "<f4", 1)
-        if self.val_points.shape[0] != self.val_labels.shape[0]:
-            raise ValueError("val_points and val_labels must have the same length")
+        if (self.val_points is None) != (self.val_labels is None):
+            raise ValueError("val_points and val_labels come together")
+        if (self.val_points is None) == (self.validation is None):
+            raise ValueError("a validation set comes as val_points and val_labels or as validation, not both")
+        if self.val_points is not None and self.val_labels is not None:
+            _require(self.val_points, "val_points", "<f4", 2, (2,))
+            _require(self.val_labels, "val_labels", "<f4", 1)
+            if self.val_points.shape[0] != self.val_labels.shape[0]:
+                raise ValueError("val_points and val_labels must have the same length")
         return self
 
     @property

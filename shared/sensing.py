@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.shared.floorplan import OccupancyGrid
+from swarmmap.shared.protocol import ValidationRecipe, WorldMap
 
 
 def beam_angles(beams: int, fov_deg: float = 360.0) -> np.ndarray:
@@ -124,3 +125,38 @@ def validation_set(grid: OccupancyGrid, scans: int, beams: int, max_range: float
         known = ~grid.unknown[rows, cols]
         points, labels_all = points[known], labels_all[known]
     return points, labels_all
+
+
+def validation_recipe(grid: OccupancyGrid, scans: int, beams: int, max_range: float, samples_per_beam: int,
+                      seed: int, occupied_depth: float = 0.03) -> ValidationRecipe:
+    """The :class:`~swarmmap.shared.protocol.ValidationRecipe` of :func:`validation_set` with
+    these arguments, with the figures of its draw on ``grid`` that a receiver checks its own by."""
+    points, labels = validation_set(grid, scans, beams, max_range, samples_per_beam, seed, occupied_depth)
+    centre = points.astype(np.float64).mean(axis=0) if len(points) else np.zeros(2)
+    return ValidationRecipe(scans=scans, beams=beams, max_range=max_range, samples_per_beam=samples_per_beam,
+                            seed=seed, occupied_depth=occupied_depth, count=len(points),
+                            occupied=int(labels.sum()), centroid=[float(c) for c in centre])
+
+
+def draw_validation(world: WorldMap) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """``world``'s validation set (points, labels) drawn from its grid by its recipe, and what
+    sets it apart from the world's own draw (None when it agrees: the same count and labels to
+    within a point in ten thousand, the mean within a millimetre: floating point on another
+    CPU may move a point by a bit, another numpy may draw another set)."""
+    r = world.validation
+    if r is None:
+        raise ValueError("the world sent its validation points; nothing to draw")
+    raw = world.grid.numpy()
+    unknown = raw == 2
+    grid = OccupancyGrid((raw != 0).astype(np.uint8), world.resolution, (world.origin[0], world.origin[1]),
+                         unknown=unknown if unknown.any() else None)
+    points, labels = validation_set(grid, r.scans, r.beams, r.max_range, r.samples_per_beam, r.seed, r.occupied_depth)
+    slack = 1 + r.count // 10_000
+    centre = points.astype(np.float64).mean(axis=0) if len(points) else np.zeros(2)
+    if abs(len(points) - r.count) > slack or abs(int(labels.sum()) - r.occupied) > slack:
+        return points, labels, (f"{len(points)} points ({int(labels.sum())} occupied) where the world drew "
+                                f"{r.count} ({r.occupied} occupied)")
+    if np.abs(centre - np.asarray(r.centroid)).max() > 1e-3:
+        return points, labels, (f"their mean at ({centre[0]:.4f}, {centre[1]:.4f}) where the world's is at "
+                                f"({r.centroid[0]:.4f}, {r.centroid[1]:.4f})")
+    return points, labels, None
