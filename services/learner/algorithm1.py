@@ -11,7 +11,8 @@ parameters. Messages come in through :meth:`Algorithm1.on_state` and
 Beyond the paper's listing: messages are buffered per round, so an early State is kept for its
 round and a late or duplicate one is ignored (rounds never mix); a node never finishes a round
 before its own update; this round's messages are sent again after ``resend_after`` seconds
-without progress (receivers ignore duplicates). Robots come and go
+without progress, then after twice as long, up to RESEND_BACKOFF times (receivers ignore
+duplicates; a link too slow for a round's messages is not flooded with their copies). Robots come and go
 (:mod:`~swarmmap.services.learner.membership`): a neighbour that left or went silent is left
 out and the round finishes with the neighbours the node has; it is taken back when it sends a
 State of the round at hand; a node that restarts behind its team replays the rounds it lost or
@@ -50,7 +51,7 @@ from swarmmap.services.learner.exchange import (
     StateCheck,
     refuse,
 )
-from swarmmap.services.learner.membership import REUNION_ROUNDS, LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.membership import RESEND_BACKOFF, REUNION_ROUNDS, LateStates, Membership, Replay, RoundBuffer
 from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.transport import Envelope, Transport
 
@@ -233,6 +234,7 @@ class RoundLoop:
         self.m = machine
         self.pace = pace if pace is not None else Pace(machine.node_id)
         self.last_progress = time.monotonic()
+        self.resend_wait = machine.rules.resend_after  # doubles after each resend of a round, up to RESEND_BACKOFF x
         self.round_mark = (0, 0.0, 0.0)  # a round, and the wait and update seconds when it began
 
     def run(self, state: np.ndarray, rounds: int, start_round: int = 0, resumed: bool = False) -> np.ndarray:
@@ -264,6 +266,7 @@ class RoundLoop:
         """Rounds moved: note each finished round's pace."""
         m = self.m
         self.last_progress = time.monotonic()
+        self.resend_wait = m.rules.resend_after
         rnd, wait, busy = self.round_mark
         if m.rnd == rnd + 1:  # (a jump is no round's pace)
             self.pace.round_done(m.rnd, m.stats.wait_s - wait, m.stats.update_s - busy)
@@ -272,17 +275,19 @@ class RoundLoop:
 
     def housekeeping(self, now: float) -> None:
         """Leave out the neighbours this round waits on that are gone or silent; resend this
-        round's messages after ``resend_after`` seconds without progress."""
+        round's messages after ``resend_wait`` seconds without progress (``resend_after``, doubled
+        after each resend of the round, up to RESEND_BACKOFF times it)."""
         m = self.m
         lost = m.transport.lost_peers()
         m.replay.forget(lost)
         m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now)
-        if now - self.last_progress > m.rules.resend_after:
+        if now - self.last_progress > self.resend_wait:
             m.send_state()
             if m.updated:
                 m.send_complete()
             m.stats.resends += 1
             self.last_progress = now
+            self.resend_wait = min(2 * self.resend_wait, RESEND_BACKOFF * m.rules.resend_after)
 
     def listen(self) -> None:
         """Wait for the next message (at most until the next check, or the end of the round's wait)."""

@@ -39,6 +39,7 @@ from swarmmap.services.learner.transport import Envelope, Transport
 log = logging.getLogger("learner")
 Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): theirs pulled within the screen's limit
 REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
+RESEND_BACKOFF = 8  # a round's messages go again after resend_after seconds, then twice as long, up to 8 times it
 
 
 @dataclass
@@ -257,7 +258,7 @@ class Replay:
     def __init__(self, node_id: int, keep_rounds: int, resend_after: float, stats: ExchangeStats):
         self.node_id, self.keep_rounds, self.resend_after, self.stats = node_id, keep_rounds, resend_after, stats
         self.history: dict[int, np.ndarray] = {}
-        self.replayed: dict[tuple[int, int], float] = {}  # (neighbour, round) -> when it was last replayed
+        self.replayed: dict[tuple[int, int], tuple[float, float]] = {}  # (neighbour, round) -> when last replayed, wait before the next
         self.newest: dict[int, int] = {}  # newest round of a State from each neighbour (forgotten when it leaves)
 
     def remember(self, rnd: int, state: np.ndarray) -> None:
@@ -278,10 +279,12 @@ class Replay:
 
     def answer(self, j: int, r: int, rnd: int, transport: Transport, now: float) -> None:
         """Neighbour ``j`` is back at round ``r`` < ``rnd``: send it rounds ``r .. rnd`` again
-        (at most once every ``resend_after`` seconds for a round)."""
-        if r not in self.history or now - self.replayed.get((j, r), -1e9) <= self.resend_after:
+        (for a round, not again within ``resend_after`` seconds, then twice as long, up to
+        RESEND_BACKOFF times it: a neighbour behind on a slow link is not flooded)."""
+        last, wait = self.replayed.get((j, r), (-1e9, self.resend_after / 2))
+        if r not in self.history or now - last <= wait:
             return
-        self.replayed[(j, r)] = now
+        self.replayed[(j, r)] = (now, min(2 * wait, RESEND_BACKOFF * self.resend_after))
         log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", self.node_id, j, r, r, rnd)
         for k in range(r, rnd + 1):
             transport.send_state(k, self.history[k])

@@ -10,9 +10,11 @@ Medians, not sums: one long wait (a partition, a neighbour restarting) is no slo
 neighbour much slower to train than this node (a host with less CPU) also makes it wait;
 compressing then buys nothing and costs a little accuracy (docs/deployment.md).
 
-Resends do not follow the pace: a round's messages go again after ``resend_after`` seconds without
-progress, however slow the rounds (rounds slowed by resends would stretch the resends, which would
-slow the rounds more). On links slower than that, raise ``learner.resend_after_s``.
+Resends do not follow the pace (rounds slowed by resends would stretch the resends, which would
+slow the rounds more): a round's messages go again after ``resend_after`` seconds without
+progress, then after twice as long each time, up to RESEND_BACKOFF times ``resend_after``, so a
+round slower than that on a slow link costs a few copies of its messages, not one every few
+seconds.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ import pytest
 from swarmmap.services.learner.algorithm1 import Algorithm1, RoundLoop
 from swarmmap.services.learner.clock import ClockExchange
 from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats, PeerFailure
+from swarmmap.services.learner.membership import Replay
 from swarmmap.services.learner.screening import implausible
 from swarmmap.services.learner.transport import Envelope, Inbox, MemoryHub
 
@@ -673,3 +674,45 @@ def test_a_compressed_chains_second_word_for_a_round_is_no_lie():
     run_algorithm1(0, graph[0], 1, own, mixing_update(0), hub.transport(0), stats=stats, linger=0.1, peer_timeout=5,
                    check_state=lambda theirs, ref: implausible(theirs, ref, 0.5))
     assert stats.refused["equivocation"] == 0 and stats.rounds_done == 1
+
+
+def test_a_round_without_progress_is_resent_less_and_less_often():
+    """A round that does not move (a link too slow for its messages) is sent again after
+    resend_after, then twice as long each time up to 8 times it, not every resend_after: the copies
+    would fill the slow link further. Progress starts the count afresh."""
+    hub = MemoryHub({0: {1}, 1: {0}})
+    sent = []
+    transport = hub.transport(0)
+    send_state = transport.send_state
+    transport.send_state = lambda k, s: (sent.append(k), send_state(k, s))
+    machine = Algorithm1(0, {1}, lambda k, th, p: th, transport, ExchangeRules(resend_after=1.0, silent_after=1e6))
+    loop = RoundLoop(machine)
+    machine.begin(np.zeros(2), 10, 0, False)
+    t0 = loop.last_progress
+    resent_at = []
+    for tick in range(1, 200):  # every half second for 100 s
+        before = machine.stats.resends
+        loop.housekeeping(t0 + tick / 2)
+        if machine.stats.resends > before:
+            resent_at.append(tick / 2)
+    gaps = [b - a for a, b in zip([0.0, *resent_at], resent_at)]
+    assert gaps[:5] == [1.5, 2.5, 4.5, 8.5, 8.5], gaps  # after > 1, > 2, > 4, then > 8 s, on half-second checks
+    assert len(sent) == len(resent_at) and len(resent_at) <= 15  # 199 checks without the backoff: 66 copies
+    loop.progress()
+    assert loop.resend_wait == 1.0
+
+
+def test_a_neighbour_behind_is_sent_its_rounds_again_less_and_less_often():
+    """A neighbour behind at round 1 (on a slow link, it keeps saying so) is sent rounds 1-2
+    again at once, then after more than 1, 2, 4 and (up to 8 times resend_after) 8 s."""
+    hub = MemoryHub({0: {1}, 1: {0}})
+    replay = Replay(0, keep_rounds=4, resend_after=1.0, stats=ExchangeStats())
+    for r in range(3):
+        replay.remember(r, np.full(2, float(r)))
+    times = []
+    for t in range(0, 60):
+        before = replay.stats.replayed
+        replay.answer(1, 1, 2, hub.transport(0), t / 2)
+        if replay.stats.replayed > before:
+            times.append(t / 2)
+    assert times == [0.0, 1.5, 4.0, 8.5, 17.0, 25.5], times
