@@ -258,13 +258,15 @@ class Replay:
     def __init__(self, node_id: int, keep_rounds: int, resend_after: float, stats: ExchangeStats):
         self.node_id, self.keep_rounds, self.resend_after, self.stats = node_id, keep_rounds, resend_after, stats
         self.history: dict[int, np.ndarray] = {}
-        self.replayed: dict[tuple[int, int], tuple[float, float]] = {}  # (neighbour, round) -> when last replayed, wait before the next
+        self.replayed: dict[tuple[int, int], tuple[float, float]] = {}  # (neighbour, round) -> when seen or replayed, wait before the next
         self.newest: dict[int, int] = {}  # newest round of a State from each neighbour (forgotten when it leaves)
 
     def remember(self, rnd: int, state: np.ndarray) -> None:
         self.history[rnd] = state
         for old in [r for r in self.history if r < rnd - self.keep_rounds]:
             del self.history[old]
+        for old in [key for key in self.replayed if key[1] < rnd - self.keep_rounds]:
+            del self.replayed[old]
 
     def seen(self, j: int, r: int) -> bool:
         """Note neighbour ``j``'s State of round ``r``; whether it is its newest word (not a
@@ -279,10 +281,16 @@ class Replay:
 
     def answer(self, j: int, r: int, rnd: int, transport: Transport, now: float) -> None:
         """Neighbour ``j`` is back at round ``r`` < ``rnd``: send it rounds ``r .. rnd`` again
-        (for a round, not again within ``resend_after`` seconds, then twice as long, up to
-        RESEND_BACKOFF times it: a neighbour behind on a slow link is not flooded)."""
-        last, wait = self.replayed.get((j, r), (-1e9, self.resend_after / 2))
-        if r not in self.history or now - last <= wait:
+        when it is still there ``resend_after`` seconds after it was first seen there (a
+        neighbour a round behind on a slow link mostly has what it needs and is on its way),
+        then after twice as long each time, up to RESEND_BACKOFF times ``resend_after``."""
+        if r not in self.history:
+            return
+        last, wait = self.replayed.get((j, r), (None, self.resend_after))
+        if last is None:
+            self.replayed[(j, r)] = (now, wait)
+            return
+        if now - last <= wait:
             return
         self.replayed[(j, r)] = (now, min(2 * wait, RESEND_BACKOFF * self.resend_after))
         log.info("node %d: neighbour %d is back at round %d; sending it rounds %d-%d again", self.node_id, j, r, r, rnd)
