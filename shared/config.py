@@ -281,7 +281,8 @@ class LearnerSettings(Section):
                                                        "(a launcher restarts it) before going on without it")
     silent_after_s: float = Field(30.0, gt=0, description="leave a neighbour out of the round when it has been silent "
                                                          "this long (it is taken back when it sends again)")
-    resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress")
+    resend_after_s: float = Field(2.0, gt=0, description="resend this round's messages after this long without progress "
+                                                         "(then after twice as long each time, up to 8 times it)")
     inbox_limit: int = Field(64, ge=4, description="messages that may wait from any one neighbour; a flood beyond this is "
                                                    "dropped (Algorithm 1 resends what an honest neighbour lost)")
     consensus: ConsensusKind = Field(
