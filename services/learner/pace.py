@@ -6,7 +6,10 @@ median wait for its neighbours' States was SLOW_RATIO times its median training 
 compute slot's wait included) and at least SLOW_MIN_WAIT_S, the exchange and not the training sets
 the pace: from then on its own States go out compressed, and it says so. Its neighbours rebuild
 whatever encoding a sender chose, so one node switches on its own; it does not switch back.
-Medians, not sums: one long wait (a partition, a neighbour restarting) is no slow link. A
+Medians, not sums: one long wait (a partition, a neighbour restarting) is no slow link. A link
+so slow that the median wait of a node's first SLOW_EARLY rounds is SLOW_CLEAR_S or more (an
+uncompressed team on 1 Mbit/s links, where a round takes a minute) is judged then, not after
+SLOW_WINDOW rounds. A
 neighbour much slower to train than this node (a host with less CPU) also makes it wait;
 compressing then buys nothing and costs a little accuracy (docs/deployment.md).
 
@@ -29,6 +32,8 @@ log = logging.getLogger("learner")
 SLOW_WINDOW = 20  # rounds judged together
 SLOW_RATIO = 2.0  # median wait / median training beyond which the links set the pace
 SLOW_MIN_WAIT_S = 0.25  # and a median wait of at least this (fast rounds wait a few ms, whatever the ratio)
+SLOW_EARLY = 3  # rounds enough to judge when the median wait is SLOW_CLEAR_S or more
+SLOW_CLEAR_S = 5.0  # a median wait of seconds a round: no need to wait for SLOW_WINDOW rounds to see it
 
 
 class Pace:
@@ -45,12 +50,14 @@ class Pace:
         if self.slow_link is None or self.adapted:
             return
         self.recent.append((wait, busy))
-        if len(self.recent) < SLOW_WINDOW:
+        if len(self.recent) < SLOW_EARLY:
             return
         waited, trained = (statistics.median(r[k] for r in self.recent) for k in (0, 1))
+        if len(self.recent) < SLOW_WINDOW and waited < SLOW_CLEAR_S:
+            return
         if waited >= SLOW_MIN_WAIT_S and waited >= SLOW_RATIO * trained:
             self.adapted = self.slow_link()
             log.warning("node %d: over its last %d rounds it waited a median %.2f s a round for its neighbours' States "
                         "against %.2f s of training: its links, not its training, set the pace; its States go out as "
-                        "%s from round %d on (learner.slow_link_compression)", self.node_id, SLOW_WINDOW, waited, trained,
+                        "%s from round %d on (learner.slow_link_compression)", self.node_id, len(self.recent), waited, trained,
                         self.adapted, rnd)

@@ -137,6 +137,12 @@ def test_the_pace_is_judged_on_medians_of_wait_against_training():
     for r in range(21, 41):  # then waits of 0.5 s against 0.05 s: the links set the pace, once
         pace.round_done(r, 0.5, 0.05)
     assert pace.adapted == "quant" and switched == [1]
+    crawling = Pace(4, lambda: "quant")  # waits of a minute a round: judged after 3 rounds, not 20
+    for r in range(1, 3):
+        crawling.round_done(r, 60.0, 0.05)
+    assert crawling.adapted is None
+    crawling.round_done(3, 60.0, 0.05)
+    assert crawling.adapted == "quant"
     never = Pace(4)  # no slow_link: a node that keeps its encoding
     for r in range(1, 40):
         never.round_done(r, 5.0, 0.05)
