@@ -267,7 +267,7 @@ class LearnerSettings(Section):
         "offline", description="train once the traversal is done (the paper), or from the start on a sliding window "
                                "of recent scans (DiNNO)")
     window_scans: int = Field(800, ge=1, description="online: scans in the sliding window (DiNNO: 800)")
-    eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds")
+    eval_every: int = Field(10, ge=1, description="evaluate and publish Metrics every this many rounds (and at least once a minute)")
     checkpoint_every: int = Field(50, ge=0, description="write RUN_DIR/checkpoints/robot-<i>.pt every this many rounds (0: never); "
                                                         "a learner started on a run directory with a checkpoint resumes from it")
     map_resolution_m: float | None = Field(None, gt=0.005, description="cell size of the saved maps (m); none: the "

@@ -4,7 +4,8 @@ With ``learner.exchange_every`` = E, Algorithm 1's round c is training rounds cE
 the first with the neighbours' States of the exchange, the others against them as they were
 (:meth:`~swarmmap.services.learner.node.Node.local_update`). On a clock
 (``learner.exchange_every_s``) every training round takes the States that came since the last.
-Each training round first reports (every ``eval_every`` rounds) and, online, takes the newest
+Each training round first reports (every ``eval_every`` rounds, and at least every REPORT_S
+seconds: a team on slow links shows it is moving) and, online, takes the newest
 window of scans; each Algorithm 1 round whose training rounds pass a multiple of
 ``checkpoint_every`` starts with a checkpoint. A round whose parameters are no longer finite
 stops the learner (:class:`~swarmmap.services.learner.errors.LearnerError`, status 6).
@@ -26,6 +27,7 @@ from swarmmap.shared.protocol import all_finite
 Report = Callable[[int, np.ndarray, dict[int, np.ndarray]], None]  # report(round, own State, the peers' States)
 Save = Callable[[int, np.ndarray], None]  # save(Algorithm 1 round, the State it starts from)
 Window = Callable[[], tuple[np.ndarray, np.ndarray]]  # the newest window of training points (online)
+REPORT_S = 60.0  # a round's Metrics at least this often, whatever eval_every (the recorder's stall watch lives on them)
 
 
 class SubRounds:
@@ -40,6 +42,7 @@ class SubRounds:
         self.start_round, self.slots, self.name, self.diverged = start_round, slots or nullcontext(), name, diverged
         self.latest: dict[int, np.ndarray] = {}  # on a clock: each neighbour's newest State
         self.compute_s = 0.0
+        self.reported_at = time.monotonic()
 
     def exchange_update(self, c: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """Algorithm 1's round ``c``: its training rounds, the first with the neighbours' States."""
@@ -71,13 +74,14 @@ class SubRounds:
 
     def train_round(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], exchange: bool,
                     fresh: dict[int, np.ndarray] | None = None) -> np.ndarray:
-        """Training round ``k``: the report every ``eval_every`` rounds (consensus error against
+        """Training round ``k``: the report every ``eval_every`` rounds or REPORT_S seconds (consensus error against
         ``peers``), then the node's update with the neighbours' States that came (``fresh``,
         default ``peers``) where ``exchange``, else against the States it holds."""
         if self.window is not None:  # DiNNO's sliding window over the scans received so far
             self.node.set_data(*self.window())
-        if k % self.s.eval_every == 0:
+        if k % self.s.eval_every == 0 or time.monotonic() - self.reported_at >= REPORT_S:
             self.report(k, theta, peers)
+            self.reported_at = time.monotonic()
         t0 = time.perf_counter()
         theta = self.node.update(k, theta, peers if fresh is None else fresh) if exchange else self.node.local_update(k, theta)
         self.compute_s += time.perf_counter() - t0
