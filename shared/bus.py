@@ -409,7 +409,11 @@ class Bus:
         deadline = time.monotonic() + timeout
         world = self.query(self.keys.world_map(), WorldMap, timeout, stop)
         if world is not None and world.validation is not None:
-            points, labels, differs = draw_validation(world)
+            try:
+                points, labels, differs = draw_validation(world)
+            except ValueError as exc:  # a grid the recipe cannot be drawn on (no free cell, say)
+                points = labels = None
+                differs = f"it cannot be drawn: {exc}"
             if differs is not None:  # another numpy, say: the world's own points, then
                 log.warning("%s-%s: the validation set drawn here from the world's grid differs from the world's "
                             "(%s); asking the world for its points", self.service, self.ident, differs)
@@ -418,7 +422,7 @@ class Bus:
                 if world is not None and world.val_points is None:
                     log.error("%s-%s: the world sent no validation points when asked for them", self.service, self.ident)
                     return None
-            else:
+            elif points is not None and labels is not None:
                 world = world.model_copy(update={"val_points": Tensor.of(points, "<f4"),
                                                  "val_labels": Tensor.of(labels, "<f4"), "validation": None})
         if world is None and not (stop is not None and stop.is_set()):

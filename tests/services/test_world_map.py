@@ -74,3 +74,18 @@ def test_a_world_map_carries_one_validation_set():
     with pytest.raises(ValidationError, match="more than"):  # a world cannot make its receivers draw without end
         recipe.model_copy(update={"scans": 100_000, "beams": 100_000}).model_validate(
             recipe.model_dump() | {"scans": 100_000, "beams": 100_000})
+
+
+def test_a_recipe_that_cannot_be_drawn_asks_for_the_points(zenoh_pair, run_id, world, caplog):
+    cfg, grid, points, labels = world
+    cfg = cfg.model_copy(update={"run_id": run_id})
+    honest = world_map_message(cfg, grid, points=False)
+    solid = honest.model_copy(update={"grid": Tensor.of(np.ones_like(grid.grid, dtype=np.uint8), "|u1")})  # no free cell
+
+    def reply(parameters: str) -> bytes:
+        return encode(world_map_message(cfg, grid)) if parameters == "points" else encode(solid)
+
+    with caplog.at_level(logging.WARNING):
+        got = asked(zenoh_pair, run_id, reply)
+    assert "it cannot be drawn" in caplog.text and "no free cell" in caplog.text
+    np.testing.assert_array_equal(got.val_points.numpy(), points)
