@@ -7,6 +7,7 @@ minute, naming the disk."""
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import signal
 import subprocess
@@ -102,14 +103,14 @@ def test_a_run_that_makes_no_progress_ends_by_itself_naming_who_holds_it_up(tmp_
 
 
 def fill(folder: Path) -> None:
-    """Write a file in ``folder`` until its disk is full."""
-    with (folder / "filler").open("wb") as f:
+    """Write a file in ``folder`` until its disk is full (unbuffered: nothing is left to flush, and
+    fail again, when the file is closed)."""
+    with (folder / "filler").open("wb", buffering=0) as f:
         try:
             while True:
                 f.write(b"\0" * (1 << 16))
-                f.flush()
-        except OSError:
-            pass
+        except OSError as e:
+            assert e.errno == errno.ENOSPC, e
 
 
 def test_a_disk_that_fills_up_under_the_run_ends_it_within_a_minute_naming_the_disk(tmpfs, tmp_path):
