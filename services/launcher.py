@@ -4,8 +4,8 @@ First it checks what it can before anything exists (services/preflight.py: the p
 paths, the devices, the run directory, Zenoh's settings) and refuses with status 2, naming
 the value and the fix. Then it starts a router on a free port, the recorder, the Rerun
 observer (unless ``up.observer`` is off), then N learners and N lidar streamers (each its own
-OS process, all Zenoh peers connected to the router, multicast scouting off), waits until they
-are alive, then starts the world.
+OS process, all Zenoh peers connected to the router, multicast scouting off) and the world, which
+builds its plan meanwhile and drives once they are alive (``world.wait_for``).
 The recorder (``swarmmap recorder``, the same service compose and SLURM start) writes the run
 directory and ends the run: when every learner has finished, or one has failed, it says so on
 ``run/done`` and every service exits by itself; ``up`` returns the recorder's status. A
@@ -397,8 +397,9 @@ class Launcher:
         log.info("run directory: %s", self.run_dir)
 
     def start_services(self, bus: Bus, t0: float) -> Child:
-        """Start the recorder, the observer, the learners and lidar streamers, wait until they
-        are alive, then the world; returns the recorder."""
+        """Start the recorder, the observer, the learners, the lidar streamers and the world, and
+        wait until all but the world are alive (the world builds its plan meanwhile and drives
+        once they are: ``world.wait_for``); returns the recorder."""
         cfg = self.cfg
         learners = 1 if cfg.learner.transport == "inproc" else cfg.robots
         names = ["router", "recorder"] + (["observer"] if cfg.up.observer else []) + [
@@ -415,10 +416,10 @@ class Launcher:
             if cfg.learner.transport == "zenoh":
                 self.spawn("learner", i, "--robot", str(i), robot=i)
             self.spawn("lidar", i, "--robot", str(i), robot=i)
+        self.spawn("world", 0)
         self.wait_alive(bus, "recorder", {"0"})
         self.wait_alive(bus, "learner", ids)
         self.wait_alive(bus, "lidar", ids)
-        self.spawn("world", 0)
         log.info("every service but the world is alive after %.1f s; the world builds the plan and drives the robots",
                  time.monotonic() - t0)
         return recorder

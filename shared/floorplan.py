@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
-from scipy import ndimage
 from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.ops import unary_union
 
@@ -85,6 +84,8 @@ class FloorPlan:
         if self.doors:
             free |= shapely.contains_xy(unary_union(self.doors), x, y).reshape(shape)
         # Space enclosed by walls but outside every room outline is free too.
+        from scipy import ndimage  # here: every service reads plans' types, few label them
+
         labels, _ = ndimage.label(~wall)
         border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
         free |= ~np.isin(labels, border) & ~wall
@@ -135,6 +136,8 @@ class OccupancyGrid:
 
     def clearance(self) -> np.ndarray:
         """Distance (m) from each cell centre to the nearest occupied cell (0 on occupied cells)."""
+        from scipy import ndimage
+
         return ndimage.distance_transform_edt(self.grid == 0) * self.resolution
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

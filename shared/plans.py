@@ -29,7 +29,6 @@ from shapely.ops import unary_union
 
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, procedural
-from swarmmap.shared.paths import check_paths, interpolate_dinno, path_length, plan_paths
 
 MAX_IMAGE_PIXELS = 50_000_000
 log = logging.getLogger(__name__)
@@ -225,6 +224,8 @@ def grid_walls(grid: OccupancyGrid):
 
 def load_waypoints(folder: Path, plan: FloorPlan) -> list[np.ndarray]:
     """Every ``*.npy`` in ``folder`` (sorted by the number in its name) as one robot's path."""
+    from swarmmap.shared.paths import check_paths, interpolate_dinno
+
     if not folder.is_dir():
         raise PlanError(folder, "waypoint folder does not exist" if not folder.exists() else "not a folder")
     files = sorted(folder.glob("*.npy"), key=lambda f: (int(m.group()) if (m := re.search(r"\d+", f.stem)) else 1 << 30, f.name))
@@ -262,6 +263,8 @@ MIN_PATH_M = 0.5  # a planned path shorter than this is a robot standing still
 def robot_paths(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid) -> list[np.ndarray]:
     """The plan's own waypoint paths (one per robot), or paths planned through free space; a
     plan with fewer waypoint paths than robots, or none a robot can drive, raises PlanError."""
+    from swarmmap.shared.paths import path_length, plan_paths  # here: scipy only where paths are made
+
     if plan.paths is not None:
         if len(plan.paths) < cfg.robots:
             raise PlanError(cfg.world.waypoints, f"{len(plan.paths)} waypoint paths for {cfg.robots} robots: run at most "
