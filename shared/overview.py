@@ -161,17 +161,17 @@ def overview_row(row, kinds: list[str], grid, maps: dict[str, np.ndarray], std_m
             show(ax, np.where(known, truth.astype(float), UNKNOWN_GREY), ext, "occupancy")
             if hits is not None and len(hits):
                 ax.scatter(hits[:, 0], hits[:, 1], s=0.3, color=matplotlib.colormaps["tab10"](robot % 10), linewidths=0)
-            ax.set_title(f"{truth_name}, its LiDAR hits" if hits is not None and len(hits) else truth_name, fontsize=9)
+            ax.set_title(f"{truth_name}, its LiDAR hits" if hits is not None and len(hits) else truth_name, fontsize=9, y=1.0)
         elif kind == "mean":
             images["mean"] = show(ax, maps["mean"], ext, "occupancy")
-            ax.set_title("mean occupancy", fontsize=9)
+            ax.set_title("mean occupancy", fontsize=9, y=1.0)
         elif kind == "std":
             if "std" in maps:
                 images["std"] = show(ax, maps["std"], ext, "std", std_max)
-            ax.set_title("standard deviation" if "std" in maps else "no std (deterministic model)", fontsize=9)
+            ax.set_title("standard deviation" if "std" in maps else "no std (deterministic model)", fontsize=9, y=1.0)
         else:
             images["error"] = show(ax, err, ext, "error")
-            ax.set_title(caption, fontsize=9)
+            ax.set_title(caption, fontsize=9, y=1.0)
         ax.set_xlim(ext[0], ext[1])
         ax.set_ylim(ext[2], ext[3])
         ax.tick_params(labelsize=7)

@@ -1,5 +1,6 @@
 """End to end: ``swarmmap up`` launches every service as its own process on loopback and
-leaves a complete run directory; ``status`` sees the live services; Ctrl-C stops everything."""
+leaves a complete run directory (with ``--mcap``, a rosbag2 in MCAP read back with rosbags);
+``status`` sees the live services; Ctrl-C stops everything."""
 
 from __future__ import annotations
 
@@ -31,8 +32,9 @@ pytestmark = pytest.mark.e2e
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("smoke") / "run"
-    proc = subprocess.run([*SWARMMAP, "up", "--robots", "3", "--rounds", "20", "--preset", "smoke",
-                           "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=300, env=clean_env())
+    proc = subprocess.run([*SWARMMAP, "up", "--robots", "3", "--rounds", "20", "--preset", "smoke", "--mcap",
+                           "--set", "observer.map_resolution_m=0.05", "--run-dir", str(run_dir)],
+                          capture_output=True, text=True, timeout=300, env=clean_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
     return run_dir, proc
 
@@ -108,6 +110,31 @@ def test_the_console_ends_with_where_everything_went_and_what_to_run_next(smoke_
     recorder = (run_dir / "logs" / "recorder-0.log").read_text()
     for phase in ("every learner is alive (3)", "traversal done:", "training: round 20 of 20", "final val_bce: robot 0"):
         assert phase in recorder, phase
+
+
+def test_a_runs_bag_holds_every_topic_it_lists_and_the_final_maps(smoke_run):
+    from rosbags.highlevel import AnyReader
+
+    run_dir, _ = smoke_run
+    observer = json.loads((run_dir / "observer.json").read_text())
+    listed = observer["mcap"]["messages"]
+    with AnyReader([run_dir / "bag"]) as reader:
+        assert {c.topic for c in reader.connections} == set(listed)
+        got: dict[str, list] = {}
+        for conn, _, raw in reader.messages():
+            got.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+    assert {t: len(v) for t, v in got.items()} == listed
+    for robot in range(3):
+        assert len(got[f"/robot_{robot}/scan"]) > 10 and len(got[f"/robot_{robot}/map"]) >= 4  # every evaluation
+        final = got[f"/robot_{robot}/map"][-1]
+        with np.load(run_dir / "maps" / f"robot-{robot}.npz") as saved:  # the learner's own final map, same cells
+            mean = saved["mean"]
+            assert (final.info.height, final.info.width) == mean.shape
+            assert (final.info.origin.position.x, final.info.origin.position.y) == pytest.approx(tuple(saved["origin"]))
+        assert np.abs(final.data.reshape(mean.shape) / 100 - mean).mean() < 0.01
+    assert "/robot_0/map_std" not in got  # a FourierNet has no std
+    assert got["/reference"][0].info.width == got["/robot_0/map"][0].info.width
+    assert {t.child_frame_id for m in got["/tf"] for t in m.transforms} == {f"robot_{i}/base_scan" for i in range(3)}
 
 
 def test_the_run_tools_answer_for_a_finished_run_in_seconds(smoke_run, tmp_path):
