@@ -91,8 +91,12 @@ def build_logodds(shape: tuple[int, int], origin: tuple[float, float], resolutio
             pts = pa[beam] + tt[j, None] * np.stack([np.cos(aa[beam]), np.sin(aa[beam])], 1)
             cell, inside = grid.cell_index(pts)
             keep = inside & ~(ka[beam] & (cell == end_cell[beam]))  # a hit's own cell is not free
-            ids = np.unique((beam[keep] + s).astype(np.int64) * n_cells + cell[keep])
-            misses += np.bincount(ids % n_cells, minlength=n_cells)
+            # Each cell a beam crosses once: a straight beam's samples of one cell are consecutive (rows
+            # and columns change monotonically along it), so a change of (beam, cell) starts a new one.
+            beam, cell = beam[keep], cell[keep]
+            new = np.ones(len(cell), bool)
+            new[1:] = (cell[1:] != cell[:-1]) | (beam[1:] != beam[:-1])
+            misses += np.bincount(cell[new], minlength=n_cells)
         # A beam crossing a cell in two slabs counts twice there at most: slabs are 128 cells long.
         hits += np.bincount(end_cell[ka & end_in], minlength=n_cells)
     l_hit, l_miss = logit(model.p_hit), logit(model.p_miss)
