@@ -94,10 +94,10 @@ def test_a_run_that_makes_no_progress_ends_by_itself_naming_who_holds_it_up(tmp_
     forever, and the recorder ends the run once nothing came for recorder.stall_timeout_s."""
     run = tmp_path / "run"
     proc, took = up(run, "--rounds", "30", "--set", "faults.link_success=0.0001", "--set", "learner.silent_after_s=3600",
-                    "--set", "recorder.stall_timeout_s=20", timeout=240)
+                    "--set", "recorder.stall_timeout_s=12", timeout=240)
     assert proc.returncode == 1, proc.stderr[-3000:]
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["reason"].startswith("the run made no progress (no new Metrics, no scans) for 20 s (recorder.stall_timeout_s): ")
+    assert summary["reason"].startswith("the run made no progress (no new Metrics, no scans) for 12 s (recorder.stall_timeout_s): ")
     assert summary["held_up_by"] and set(summary["held_up_by"]) <= {0, 1, 2}
     assert f"learner(s) {summary['held_up_by']}" in summary["reason"] and "the run made no progress" in proc.stderr
 
