@@ -45,11 +45,12 @@ def test_dsgd_exchanges_every_few_rounds(tmp_path):
 
 
 def test_individual_and_disk_graph(tmp_path):
-    alone = up(tmp_path / "i", "--set", "learner.algorithm=individual")
+    alone = up(tmp_path / "i", "--rounds", "15", "--set", "learner.algorithm=individual")
     rows = list(csv.DictReader((tmp_path / "i" / "metrics.csv").open()))
     assert all(float(r["consensus_error"]) == 0.0 and int(r["bytes_received"]) == 0 for r in rows)
     assert all(v["final_val_bce"] < v["first_val_bce"] for v in alone.values())
-    disk = up(tmp_path / "d", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=0.01", "--transport", "inproc")
+    disk = up(tmp_path / "d", "--rounds", "15", "--set", "learner.graph=disk", "--set", "learner.comm_radius_m=0.01",
+              "--transport", "inproc")
     assert all(v["finished"] for v in disk.values())  # nobody within 1 cm: each trains alone
 
 

@@ -20,9 +20,9 @@ pytestmark = pytest.mark.e2e
 ROBOTS = 2
 
 
-def start_team(run_dir: Path, run_id: str, rounds: int) -> dict[str, subprocess.Popen]:
+def start_team(run_dir: Path, run_id: str, rounds: int, **settings: str) -> dict[str, subprocess.Popen]:
     """router, world, observer, lidars, learners and recorder, each its own process (world first:
-    it waits for the others)."""
+    it waits for the others); ``settings`` as environment variables (``SWARMMAP_...``)."""
     port = free_port()
     env = clean_env() | {
         "SWARMMAP_RUN_ID": run_id, "SWARMMAP_PRESET": "smoke", "SWARMMAP_ROBOTS": str(ROBOTS),
@@ -30,7 +30,7 @@ def start_team(run_dir: Path, run_id: str, rounds: int) -> dict[str, subprocess.
         "SWARMMAP_ZENOH__MODE": "peer", "SWARMMAP_ZENOH__CONNECT": f"[tcp/127.0.0.1:{port}]",
         "SWARMMAP_ZENOH__LISTEN": "[tcp/127.0.0.1:0]", "SWARMMAP_ZENOH__MULTICAST_SCOUTING": "false",
         "SWARMMAP_WORLD__WAIT_FOR": "[lidar, learner, recorder, observer]",
-    }
+    } | settings
     (run_dir / "logs").mkdir(parents=True)
     # The run's credentials first (compose and SLURM do the same): every link is then mutual TLS.
     subprocess.run([*SWARMMAP, "secrets"], env=env, check=True, capture_output=True, timeout=60)
@@ -88,7 +88,8 @@ def test_services_started_alone_finish_by_themselves_with_a_whole_run_directory(
 
 def test_a_killed_learner_ends_the_run_with_a_failure_naming_it(tmp_path, run_id):
     run_dir = tmp_path / "run"
-    procs = start_team(run_dir, run_id, rounds=100000)
+    # A learner that left may come back within recorder.rejoin_timeout_s (20 s by default): 5 s here.
+    procs = start_team(run_dir, run_id, rounds=100000, SWARMMAP_RECORDER__REJOIN_TIMEOUT_S="5")
     try:
         assert wait_until(lambda: "round    5" in (run_dir / "logs" / "recorder-0.log").read_text(), 180, 0.2), logs(run_dir)
         procs["learner-1"].send_signal(signal.SIGKILL)
