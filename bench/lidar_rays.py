@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from swarmmap.services.world import Simulation, build_plan, robot_paths
+from swarmmap.services.world.simulation import Simulation, build_plan, robot_paths
 from swarmmap.shared.config import resolve
 from swarmmap.shared.protocol import Scan, Tensor, encode
 

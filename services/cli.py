@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         elif name in TOOLS or name == "status":
             add_tool_arguments(name, p)
         elif name == "net":
-            from swarmmap.services.netns import add_net_arguments
+            from swarmmap.services.up.netns import add_net_arguments
 
             add_net_arguments(p)
         if name not in ("up", "prepare", "ros2", "net", *TOOLS):
@@ -169,11 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
 def _runner(command: str) -> Callable:
     # Imported lazily: `swarmmap status --help` should not pay for torch and pybullet.
     if command == "up":
-        from swarmmap.services.launcher import run
+        from swarmmap.services.up.launcher import run
     elif command == "prepare":
-        from swarmmap.services.launcher import run_prepare as run
+        from swarmmap.services.up.launcher import run_prepare as run
     elif command == "secrets":
-        from swarmmap.services.launcher import run_secrets as run
+        from swarmmap.services.up.launcher import run_secrets as run
     elif command == "router":
         from swarmmap.services.router import run
     elif command == "recorder":
@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         return run_tool(args)
     stop = shutdown_event()
     if args.command == "net":
-        from swarmmap.services.netns import run_net
+        from swarmmap.services.up.netns import run_net
 
         return run_net(args, stop)
     if args.command == "status":

@@ -405,7 +405,7 @@ def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, devi
             sinks.append(McapBag(unused_path(cfg.observer.mcap), cfg.observer.std_max))  # a resumed run keeps its earlier bag
             log.info("writing the run as a rosbag2 (MCAP) to %s", sinks[-1].path)
         if (namespaces := cfg.ros2_maps()) is not None:
-            from swarmmap.services.ros2 import Ros2Maps
+            from swarmmap.shared.rosmaps import Ros2Maps
 
             sinks.append(Ros2Maps(namespaces, cfg.observer.std_max))
             log.info("publishing the maps to ROS 2: %s and /map (nav_msgs/OccupancyGrid, transient local)",

@@ -36,17 +36,12 @@ def run_policy(cfg: RunConfig) -> dict:
         except GraphError:  # the learners refuse it themselves, naming it
             neighbours = None
     return access_policy(Keys(cfg.key_prefix, cfg.run_id), cfg.robots, inproc_learner=cfg.learner.transport == "inproc",
-                         neighbours=neighbours, host_routers=per_host(cfg))
-
-
-def per_host(cfg: RunConfig) -> bool:
-    """Whether the run has a router on each host (shared/mesh.py), not one for the run."""
-    return cfg.up.routers == "per-host" or cfg.up.netns
+                         neighbours=neighbours, host_routers=cfg.router_per_host())
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """Serve as a router until stopped."""
-    linked = per_host(cfg) or bool(cfg.zenoh.connect)  # other routers on the far side of its links
+    linked = cfg.router_per_host() or bool(cfg.zenoh.connect)  # other routers on the far side of its links
     settings = cfg.zenoh.model_copy(update={"mode": "router", "stuck_s": cfg.zenoh.stuck_s or
                                             (LINKED_ROUTER_CLOSES_STUCK_S if linked else None)})
     policy = None if settings.insecure else run_policy(cfg)

@@ -625,6 +625,10 @@ class RunConfig(Section):
         """How long, once the run is over, services take to leave (the router stays for them)."""
         return self.recorder.linger_s + 5.0
 
+    def router_per_host(self) -> bool:
+        """Whether the run has a router on each host (shared/mesh.py), not one for the run."""
+        return self.up.routers == "per-host" or self.up.netns
+
 
 COMMON_FIELDS = ("run_id", "key_prefix", "robots", "seed", "run_dir", "log_level")
 SECTION_NAMES = ("zenoh", "router", "world", "lidar", "learner", "observer", "recorder", "faults", "up")
@@ -1082,16 +1086,19 @@ def config_from_args(args: argparse.Namespace, environ: dict[str, str] | None = 
 def task_robot(given: int | None, robots: int, field: str, environ: dict[str, str] | None = None) -> int:
     """The robot a per-robot service serves: ``given`` (``--robot``), else its SLURM task rank
     (``SLURM_PROCID``), so that ``srun --ntasks N swarmmap learner`` serves robots 0..N-1, else
-    one claimed in the folder ``SWARMMAP_ROBOT_CLAIMS`` names (compose's replicas; services/claim.py).
+    one claimed in the folder ``SWARMMAP_ROBOT_CLAIMS`` names (compose's replicas; shared/claims.py).
     Stops the service with a message naming ``field`` when there is none or it is out of range."""
     environ = os.environ if environ is None else environ
     robot = given
     if robot is None and environ.get("SLURM_PROCID", "").isdigit():
         robot = int(environ["SLURM_PROCID"])
     if robot is None and environ.get("SWARMMAP_ROBOT_CLAIMS"):
-        from swarmmap.services.claim import claimed_robot
+        from swarmmap.shared.claims import ClaimError, claimed_robot
 
-        robot = claimed_robot(environ["SWARMMAP_ROBOT_CLAIMS"], field, robots)
+        try:
+            robot = claimed_robot(environ["SWARMMAP_ROBOT_CLAIMS"], field, robots)
+        except ClaimError as exc:
+            fail(str(exc))
     if robot is None or not 0 <= robot < robots:
         fail(f"config error:\n  {field}: required (--robot, the SLURM task rank or SWARMMAP_ROBOT_CLAIMS), "
              f"one of 0..{robots - 1} (got {robot!r})")

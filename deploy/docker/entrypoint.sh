@@ -11,7 +11,7 @@
 # The start of a run (compose's first step; the other services wait for it) gives the runs
 # folder and the run directory, when the engine has just made them (root's and empty), to the
 # owner of /etc/swarmmap/compose.yaml (compose mounts its file there: the user who cloned the
-# repository), then, as the run directory's owner, runs `python -m swarmmap.services.claim start`:
+# repository), then, as the run directory's owner, runs `python -m swarmmap.services.up.claim start`:
 # it refuses a run directory holding a finished run, or one that did not finish unless
 # SWARMMAP_UP__RESUME=true resumes it (the same settings only), writes config.yaml, makes the
 # run's CA (its key in that process's memory only), forgets the robot claims of an earlier `up`,
@@ -48,7 +48,7 @@ if [ "$(id -u)" = 0 ] && [ -n "$run_dir" ] && [ -d "$run_dir" ] && [ "$(stat -c 
     exec setpriv --reuid "$(stat -c %u "$run_dir")" --regid "$(stat -c %g "$run_dir")" --clear-groups "$0" "$@"
 fi
 if [ "${1:-}" = --start-run ]; then
-    exec python -m swarmmap.services.claim start
+    exec python -m swarmmap.services.up.claim start
 elif [ -n "$shared" ]; then
     case "${1:-}" in
     router | recorder | world | lidar | learner | observer)  # a service of the run; other commands are not held back

@@ -104,7 +104,7 @@ def add_parser(sub, text: str = "The paper's experiments (kl-sweep, regularizati
 
 def main(args: argparse.Namespace) -> int:
     """Run the chosen experiment; 2 when its arguments are refused, 1 when a run failed."""
-    from swarmmap.services.preflight import writable_problem
+    from swarmmap.services.up import writable_problem
 
     if args.out is not None and (why := writable_problem("--out", args.out)) is not None:
         print(f"config error:\n  {why}", file=sys.stderr)

@@ -85,7 +85,7 @@ def same_settings(run_dir: Path, cfg: RunConfig) -> bool:
         old = yaml.safe_load((run_dir / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return False
-    from swarmmap.services.launcher import prepare
+    from swarmmap.services.up import prepare
 
     new = prepare(cfg.model_copy(update={"run_dir": run_dir})).model_dump(mode="json")  # as up writes it
     if not isinstance(old, dict):
@@ -123,7 +123,7 @@ def run_up(cfg: RunConfig, run_dir: Path, progress: Progress, label: str) -> Pat
     """One ``swarmmap up`` of ``cfg`` into ``run_dir``: reused when it finished with the same
     settings, resumed (from the learners' checkpoints) when it stopped part-way, moved aside
     when it holds other settings."""
-    from swarmmap.services.launcher import Launcher
+    from swarmmap.services.up import Launcher
 
     if run_dir.exists() and same_settings(run_dir, cfg) and finished(run_dir):
         log.info("%s: finished earlier in %s with the same settings, reusing it", label, run_dir)

@@ -18,7 +18,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from swarmmap.services.world import build_plan
+from swarmmap.services.world.simulation import build_plan
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.models import predict
 from swarmmap.shared.networks import load_model

@@ -1,4 +1,4 @@
-"""Robot ids claimed by look-alike containers (services/claim.py) and compose's start of a run:
+"""Robot ids claimed by look-alike containers (services/up/claim.py) and compose's start of a run:
 replicas that claim at once get distinct ids, a holder gets its own id back, one too many is
 refused with a message naming the setting; a finished run is refused, an unfinished one is
 resumed only when asked (SWARMMAP_UP__RESUME) and with its own settings, and a refused start
@@ -15,8 +15,9 @@ import threading
 
 import pytest
 
-from swarmmap.services.claim import ClaimError, claim_robot, forget_claims, nobody_running, start
+from swarmmap.services.up.claim import nobody_running, start
 from swarmmap.shared.bus import Bus
+from swarmmap.shared.claims import ClaimError, claim_robot, forget_claims
 from swarmmap.shared.config import ZenohSettings, task_robot
 from swarmmap.shared.protocol import Keys
 from swarmmap.shared.secrets import SecretsError, access_policy, enrol

@@ -6,7 +6,7 @@ from __future__ import annotations
 import io
 import logging
 
-from swarmmap.services.console import CLEAR, Console, closing_block
+from swarmmap.services.up.console import CLEAR, Console, closing_block
 from tests.conftest import recorded_run
 
 

@@ -8,7 +8,7 @@ import sys
 import threading
 import time
 
-from swarmmap.services.launcher import Child, Launcher, host_cores
+from swarmmap.services.up.launcher import Child, Launcher, host_cores
 from swarmmap.shared.config import RunConfig, UpSettings
 
 
@@ -110,7 +110,7 @@ def test_a_service_that_refuses_its_settings_ends_the_run_at_once_with_its_reaso
 
 
 def test_the_reason_is_the_services_last_error_without_time_stamps():
-    from swarmmap.services.launcher import last_error
+    from swarmmap.services.up.launcher import last_error
 
     record = ["2030-01-01 10:00:00,000 INFO learner: robot 1: 900 points",
               "2030-01-01 10:00:01,000 ERROR learner: robot 1: cannot read checkpoint c/robot-1.pt: load failed.",
@@ -125,7 +125,7 @@ def test_the_reason_is_the_services_last_error_without_time_stamps():
 def test_a_run_directory_is_never_overwritten_and_resumed_only_when_asked(tmp_path):
     """A finished run is refused, resumed or not; one that did not finish is refused without
     ``--resume`` (naming it) and with other settings; a new directory takes any run."""
-    from swarmmap.services.launcher import prepare, run_dir_problem, write_config
+    from swarmmap.services.up.launcher import prepare, run_dir_problem, write_config
     from swarmmap.shared.config import resolve
     from tests.conftest import recorded_run
 
@@ -152,7 +152,7 @@ def test_a_run_directory_is_never_overwritten_and_resumed_only_when_asked(tmp_pa
 def test_resume_names_the_run_it_resumes():
     import pytest
 
-    from swarmmap.services.launcher import prepare
+    from swarmmap.services.up.launcher import prepare
     from swarmmap.shared.config import ConfigError, resolve
 
     with pytest.raises(ConfigError, match="up.resume: name the run to resume: --run-dir RUN_DIR"):

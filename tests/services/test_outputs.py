@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from swarmmap.services.learner.outputs import write_outputs
-from swarmmap.services.world import build_plan, world_map_message
+from swarmmap.services.world.simulation import build_plan, world_map_message
 from swarmmap.shared.config import resolve
 from swarmmap.shared.networks import build_network
 

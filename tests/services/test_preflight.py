@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from swarmmap.services.preflight import check_run, device_problem, endpoint_problem
+from swarmmap.services.up.preflight import check_run, device_problem, endpoint_problem
 from swarmmap.shared.config import ConfigError, resolve
 from tests.conftest import PROMPT_S, SWARMMAP, clean_env
 

@@ -9,8 +9,8 @@ import pytest
 import trimesh
 from PIL import Image
 
-from swarmmap.services.robot import LIDAR_OFFSET
-from swarmmap.services.world import Simulation
+from swarmmap.services.world.robot import LIDAR_OFFSET
+from swarmmap.services.world.simulation import Simulation
 from swarmmap.shared.config import WorldSettings
 from swarmmap.shared.floorplan import procedural
 from swarmmap.shared.sensing import sensor_model

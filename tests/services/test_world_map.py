@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from swarmmap.services.world import build_plan, map_replies, world_map_message
+from swarmmap.services.world.simulation import build_plan, map_replies, world_map_message
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import resolve
 from swarmmap.shared.protocol import Keys, Tensor, ValidationRecipe, WorldMap, encode

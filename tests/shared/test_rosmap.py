@@ -7,7 +7,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from swarmmap.services.world import robot_paths, wire_grid
+from swarmmap.services.world.simulation import robot_paths, wire_grid
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.paths import coverage, path_length, plan_paths, point_along

@@ -7,7 +7,7 @@ import pytest
 import shapely
 from shapely.ops import unary_union
 
-from swarmmap.services.world import robot_paths
+from swarmmap.services.world.simulation import robot_paths
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import PlanError
 from swarmmap.shared.paths import path_length, plan_paths, point_along

@@ -6,7 +6,7 @@ from __future__ import annotations
 import yaml
 
 from swarmmap.services.experiments.common import same_settings
-from swarmmap.services.launcher import prepare
+from swarmmap.services.up.launcher import prepare
 from swarmmap.shared.config import resolve
 
 

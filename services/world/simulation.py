@@ -20,8 +20,7 @@ import logging
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,15 +29,15 @@ import pybullet
 import shapely
 from scipy import ndimage
 
-from swarmmap.services.robot import LIDAR_LINK, write_urdf
+from swarmmap.services.world.robot import LIDAR_LINK, write_urdf
+from swarmmap.services.world.session import serving
 from swarmmap.shared.atomic import atomic_write_bytes, save_png
-from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import RunConfig, WorldSettings
 from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
 from swarmmap.shared.mapfiles import save_ros_map, trinary_pixels
 from swarmmap.shared.paths import coverage, path_length, point_along
 from swarmmap.shared.plans import load_floorplan, robot_paths
-from swarmmap.shared.protocol import Keys, Scan, Tensor, WorldMap, encode
+from swarmmap.shared.protocol import Scan, Tensor, WorldMap, encode
 from swarmmap.shared.sensing import beam_angles, validation_recipe, validation_set
 
 log = logging.getLogger("world")
@@ -195,29 +194,6 @@ def world_map_message(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarra
                     positions=None if paths is None else Tensor.of(np.array([p[-1] for p in paths]), "<f4"))
 
 
-def wait_for_consumers(cfg: RunConfig, bus: Bus, stop: threading.Event) -> bool:
-    """Wait (up to ``world.wait_for_consumers_s``) for the services of ``world.wait_for``; False
-    when told to stop meanwhile."""
-    w = cfg.world
-    deadline = time.monotonic() + w.wait_for_consumers_s
-    for service in w.wait_for:
-        wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner") else {"0"}
-        missing = bus.wait_alive(service, wanted, max(0.0, deadline - time.monotonic()), stop)
-        if stop.is_set():
-            return False
-        if missing:
-            log.warning("driving without %s %s (not alive after %.0f s)", service, sorted(missing), w.wait_for_consumers_s)
-    return True
-
-
-def wait_for_subscribers(pubs: list, stop: threading.Event, timeout: float = 10.0) -> None:
-    """Wait (up to ``timeout``) until every robot's scan publisher knows a subscriber (what it sends
-    before is dropped); warn naming the robots that have none."""
-    if waiting := Bus.wait_matched(pubs, timeout, stop):
-        log.warning("driving although no subscriber of %s is known yet (their first scans may be lost)",
-                    ", ".join(p.key for p in waiting))
-
-
 def map_replies(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | None) -> Callable[[str], bytes]:
     """The world's answer to a query on ``world/map`` with these parameters: the validation set
     as its recipe, or its points when the parameters ask for ``points`` (encoded once, when first
@@ -228,36 +204,9 @@ def map_replies(cfg: RunConfig, grid: OccupancyGrid, paths: list[np.ndarray] | N
                                else recipe)
 
 
-@contextmanager
-def serving(cfg: RunConfig, reply: Callable[[str], bytes], stop: threading.Event) -> Iterator[list | None]:
-    """The world's session: ``reply(parameters)`` (an encoded WorldMap) served on ``world/map``,
-    a scan publisher per robot, announced; yields the publishers once the consumers are alive, or
-    None when the world must not drive (``world.drive`` off: after the run is over; or stopped
-    while waiting)."""
-    keys = Keys(cfg.key_prefix, cfg.run_id)
-    with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
-        bus.end_with_run(stop)
-        bus.serve(keys.world_map(), reply)
-        pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
-        bus.announce()
-        if not cfg.world.drive:
-            log.info("serving the map only (world.drive is off)")
-            stop.wait()
-            yield None
-        else:
-            ready = wait_for_consumers(cfg, bus, stop)
-            if ready and "lidar" in cfg.world.wait_for:
-                wait_for_subscribers(pubs, stop)
-            yield pubs if ready and not stop.is_set() else None
-
-
 def run(cfg: RunConfig, stop: threading.Event) -> int:
-    """The world service's main loop; returns the process exit status."""
+    """The simulated world's main loop; returns the process exit status."""
     w = cfg.world
-    if w.dataset:
-        from swarmmap.services.dataset import run as run_dataset  # a log needs no pybullet world
-
-        return run_dataset(cfg, stop)
     try:
         plan = build_plan(cfg)
         grid = plan.occupancy(w.grid_resolution_m)

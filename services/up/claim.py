@@ -1,16 +1,6 @@
-"""Robot ids claimed at start, for per-robot services that all look alike (compose's replicas
-of one lidar service and one learner service), and compose's start of a run.
+"""Compose's start of a run: the run directory checked, its config written, its signer.
 
-With ``SWARMMAP_ROBOT_CLAIMS=FOLDER`` in its environment (compose: a volume shared by the
-run's containers), a lidar streamer or learner started without ``--robot`` (and outside SLURM)
-takes the lowest robot id that no other holder has taken for its service. The claims are
-``FOLDER/<service>.json`` (holder -> robot id), read and written under an exclusive ``flock``,
-so replicas that start at once get distinct ids. The holder is the host name, which in a
-container is the container's id: a container that restarts gets its own id back, and one more
-than the run has robots is refused. Outside containers, processes that share a host name share
-a claim: give them ``--robot`` instead.
-
-``python -m swarmmap.services.claim start`` is the first step of a compose run (the ``start``
+``python -m swarmmap.services.up.claim start`` is the first step of a compose run (the ``start``
 container runs it, see deploy/docker/entrypoint.sh; it runs no service and joins no Zenoh
 session): from the same environment as every service, it checks the run directory as ``swarmmap up`` does (a
 finished run: refused; one that did not finish: resumed with ``SWARMMAP_UP__RESUME=true`` when its
@@ -25,64 +15,22 @@ it claimed, ``zenoh.signer``) until the run is over.
 from __future__ import annotations
 
 import fcntl
-import json
 import logging
 import os
-import socket
 import sys
 import threading
 import time
 from pathlib import Path
 
 from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.config import ConfigError, RunConfig, fail, resolve
+from swarmmap.shared.claims import CLAIMS_ENV, forget_claims
+from swarmmap.shared.config import ConfigError, RunConfig, resolve
 from swarmmap.shared.runtime import setup_logging, shutdown_event
 from swarmmap.shared.secrets import Signer, identities, router_names
 
-CLAIMS_ENV = "SWARMMAP_ROBOT_CLAIMS"
 SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 
 log = logging.getLogger("claim")
-
-
-class ClaimError(Exception):
-    """No robot id is left for this holder."""
-
-
-def claim_robot(folder: Path, service: str, robots: int, holder: str | None = None) -> int:
-    """The robot id ``holder`` (default: this host's name) holds for ``service``, claimed now
-    if it holds none: the lowest of ``0..robots-1`` that nobody holds."""
-    holder = holder or socket.gethostname()
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{service}.json"
-    with open(folder / f".{service}.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
-        claims: dict[str, int] = json.loads(path.read_text()) if path.exists() else {}
-        robot = claims.get(holder)
-        if robot is None or not 0 <= robot < robots:
-            free = sorted(set(range(robots)) - set(claims.values()))
-            if not free:
-                raise ClaimError(f"all {robots} robot ids of {service} are held ({path}: {json.dumps(claims)}); "
-                                 f"more {service} containers than robots? (SWARMMAP_ROBOTS={robots})")
-            robot = claims[holder] = free[0]
-            atomic_write_text(path, json.dumps(claims, indent=1) + "\n")
-    log.info("%s %s serves robot %d (claims in %s)", service, holder, robot, path)
-    return robot
-
-
-def claimed_robot(folder: str, field: str, robots: int) -> int:
-    """The robot of the service whose robot field is ``field`` (``learner.robot``), claimed in
-    ``folder``; stops the service with a message naming the field when none is left."""
-    try:
-        return claim_robot(Path(folder), field.split(".")[0], robots)
-    except (ClaimError, OSError, ValueError) as exc:  # ValueError: a claims file that is not JSON
-        fail(f"config error:\n  {field}: no robot id to claim in {folder} ({CLAIMS_ENV}): {exc}")
-
-
-def forget_claims(folder: Path) -> None:
-    """Drop every claim in ``folder`` (a new ``up``: its containers claim afresh)."""
-    for path in folder.glob("*.json"):
-        path.unlink()
 
 
 def start(environ: dict[str, str] | None = None, serve: bool = False, stop: threading.Event | None = None) -> int:
@@ -149,7 +97,7 @@ def nobody_running(running: Path | None) -> bool:
 def begin(environ: dict[str, str]) -> RunConfig:
     """The checks and writes of the start of a run; returns its config, or raises ConfigError
     naming what is wrong."""
-    from swarmmap.services.launcher import WayOut, prepare, run_dir_problem, write_config
+    from swarmmap.services.up.launcher import WayOut, prepare, run_dir_problem, write_config
     from swarmmap.shared.floorplan import PlanError
     from swarmmap.shared.recording import RecordingError
 
@@ -169,10 +117,10 @@ def begin(environ: dict[str, str]) -> RunConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m swarmmap.services.claim start``: the start of a compose run, then its signer."""
+    """``python -m swarmmap.services.up.claim start``: the start of a compose run, then its signer."""
     argv = sys.argv[1:] if argv is None else argv
     if argv != ["start"]:
-        print("usage: python -m swarmmap.services.claim start", file=sys.stderr)
+        print("usage: python -m swarmmap.services.up.claim start", file=sys.stderr)
         return 2
     return start(serve=True, stop=shutdown_event())
 

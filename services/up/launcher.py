@@ -1,6 +1,6 @@
 """``swarmmap up``: the whole system as local processes on loopback, and its run directory.
 
-First it checks what it can before anything exists (services/preflight.py: the plan and its
+First it checks what it can before anything exists (services/up/preflight.py: the plan and its
 paths, the devices, the run directory, Zenoh's settings) and refuses with status 2, naming
 the value and the fix. Then it starts a router on a free port, the recorder, the Rerun
 observer (unless ``up.observer`` is off), then N learners and N lidar streamers (each its own
@@ -48,10 +48,9 @@ from pathlib import Path
 
 import yaml
 
-from swarmmap.services.console import Console, closing_block
-from swarmmap.services.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
-from swarmmap.services.preflight import PlanFacts, check_run
-from swarmmap.services.router import per_host
+from swarmmap.services.up.console import Console, closing_block
+from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
+from swarmmap.services.up.preflight import PlanFacts, check_run
 from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.config import ConfigError, RunConfig, fail, validate_config
@@ -147,7 +146,7 @@ def write_run_secrets(cfg: RunConfig, router_endpoints: list[str] | None = None)
         fail(f"config error:\n  zenoh.keep_ca: {keep} lies inside the credentials or the run directory, which services read; "
              "keep the CA key elsewhere (e.g. ~/.swarmmap-ca)")
     try:
-        issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots, per_host(cfg)),
+        issued = write_credentials(secrets, cfg.run_id, identities(cfg.robots, cfg.router_per_host()),
                                    router_names(cfg.zenoh.connect + (router_endpoints or []), cfg.router.hosts), keep_ca=keep)
     except (SecretsError, OSError) as exc:
         fail(f"config error:\n  zenoh.secrets: {exc}")
@@ -208,7 +207,7 @@ class Launcher:
         self.failure_code: int | None = None  # that service's exit status
         self.done: RunDone | None = None  # the recorder's verdict, as it said it (also when it could not write it)
         self._phase = "starting"
-        self.per_host = per_host(self.cfg)
+        self.per_host = self.cfg.router_per_host()
         self.network: Network | None = None  # up --netns: the run's hosts
         self.routers: dict[str, HostRouter] = {}  # a router per host: where each listens, whom it dials
         if self.per_host:
@@ -216,7 +215,7 @@ class Launcher:
 
     def plan_hosts(self) -> None:
         """A router per host (shared/mesh.py): on loopback ports, or with ``up.netns`` on the
-        addresses of the run's network (services/netns.py)."""
+        addresses of the run's network (services/up/netns.py)."""
         cfg, base_port = self.cfg, int(self.router_endpoint.rsplit(":", 1)[1])
         hosts = host_names(cfg.robots)
         local = {BASE: ("127.0.0.1", base_port)}

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from swarmmap.services.world import serving
+from swarmmap.services.world.session import serving
 from swarmmap.shared.config import RunConfig
 from swarmmap.shared.datasets import BagTopics, DatasetError, Team, make_team, read_log
 from swarmmap.shared.logodds import bce

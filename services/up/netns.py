@@ -17,7 +17,7 @@ side; :meth:`Network.heal` removes it. ``swarmmap net`` does the same from anoth
 run goes on (the fault harness).
 
 Everything is removed when the run ends: by ``up`` itself, and, when ``up`` is killed (even by
-SIGKILL), by a guard process that waits for it to die (``python -m swarmmap.services.netns
+SIGKILL), by a guard process that waits for it to die (``python -m swarmmap.services.up.netns
 guard``). Deleting a namespace removes its interfaces, their qdiscs and its rules. What exists is
 written to ``RUN_DIR/network.json`` first, so a later ``up --netns`` of the run, or ``swarmmap
 net clean``, can remove what a crash left.
@@ -336,7 +336,7 @@ def run_net(args: argparse.Namespace, stop: threading.Event) -> int:
 def start_guard(state_path: Path, log_path: Path) -> subprocess.Popen:
     """Start the process that removes the run's network once this process has died, however it died."""
     with log_path.open("a") as out:
-        return subprocess.Popen([sys.executable, "-m", "swarmmap.services.netns", "guard", str(os.getpid()), str(state_path)],
+        return subprocess.Popen([sys.executable, "-m", "swarmmap.services.up.netns", "guard", str(os.getpid()), str(state_path)],
                                 stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
 
 
@@ -360,8 +360,8 @@ def guard(pid: int, state_path: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m swarmmap.services.netns guard PID STATE``: the guard (see :func:`guard`)."""
-    p = argparse.ArgumentParser(prog="swarmmap.services.netns")
+    """``python -m swarmmap.services.up.netns guard PID STATE``: the guard (see :func:`guard`)."""
+    p = argparse.ArgumentParser(prog="swarmmap.services.up.netns")
     sub = p.add_subparsers(dest="command", required=True)
     g = sub.add_parser("guard")
     g.add_argument("pid", type=int)
