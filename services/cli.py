@@ -68,12 +68,14 @@ DESCRIPTIONS = {
     "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
     "net": "Change the network of a run started with up --netns: cut the team in two, heal it, set link rates and "
            "loss (root).",
+    "plugins": "List the installed parts (consensus rules, dataset readers), built-in and from other packages, each "
+               "checked.",
     "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
             "(nav_msgs/OccupancyGrid).",
 }
 SECTIONS = {"up": "up", "prepare": "up", "ros2": "ros2", "secrets": None, "router": "router", "recorder": "recorder", "world": "world",
             "lidar": "lidar", "learner": "learner", "observer": "observer", "status": None}
-TOOLS = ("runs", "logs", "compare")  # read run directories only: no config, no Zenoh
+TOOLS = ("runs", "logs", "compare", "plugins")  # read run directories or the installed packages only: no config, no Zenoh
 # What a user sets most, first in up's and prepare's help: (config path, flag, help where the field's own does not fit).
 EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learner.rounds", "--rounds", None),
             ("learner.model", "--model", None),
@@ -193,8 +195,21 @@ def _runner(command: str) -> Callable:
     return run
 
 
+def list_plugins(args: argparse.Namespace) -> int:
+    """``swarmmap plugins``: every installed part and where it comes from; status 2 when one is refused."""
+    from swarmmap.shared.plugins import report
+
+    lines, refused = report()
+    print("\n".join(lines))
+    if refused:
+        print(f"{refused} plug-in(s) refused (above): a run that names one is refused at start", file=sys.stderr)
+    return 2 if refused else 0
+
+
 def run_tool(args: argparse.Namespace) -> int:
-    """``runs``, ``logs``, ``compare``: they read run directories and print what they found."""
+    """``runs``, ``logs``, ``compare``: they read run directories and print what they found; ``plugins``."""
+    if args.command == "plugins":
+        return list_plugins(args)
     from swarmmap.services import runs
 
     try:

@@ -27,6 +27,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from swarmmap.shared import plugins
 from swarmmap.shared.layout import state_copies
 from swarmmap.shared.protocol import NAME_PATTERN
 
@@ -57,13 +58,37 @@ def parse_shape(value: Any) -> list[int]:
 
 
 ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
-# learner.consensus: the consensus rules (services/learner/consensus/, whose registry names the same)
-ConsensusKind = Literal["dinno", "ramen", "sigma", "dgvi"]
 # learner.algorithm: the learning rules (services/learner/registry.py names the same)
 AlgorithmKind = Literal["dinno", "dsgd", "dsgt", "individual", "centralized"]
 MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
 # The learner models whose maps have a standard deviation (stochastic networks); a FourierNet's have none.
 STD_MODELS = ("bnn", "dropout")
+
+
+def consensus_fits(s: LearnerSettings) -> None:
+    """Refuse a consensus rule that cannot serve these settings: one that fails to load, a model it
+    does not work with, options it does not take (a ValueError naming the rule)."""
+    try:
+        rule = plugins.load("consensus", s.consensus)
+    except plugins.PluginError as exc:
+        raise ValueError(str(exc)) from None
+    if rule.models is not None and s.model not in rule.models:
+        why = f" {rule.why_models}:" if rule.why_models else ""
+        raise ValueError(f"consensus {s.consensus}{why} it needs model {' or '.join(rule.models)} (not {s.model})")
+    consensus_options(s.consensus, rule, s.consensus_options)
+
+
+def consensus_options(name: str, rule: plugins.ConsensusPlugin, given: dict[str, Any]) -> Any:
+    """The rule's options validated by its own model (None for a rule that takes none, refusing any given)."""
+    if rule.options is None:
+        if given:
+            raise ValueError(f"consensus_options: consensus {name} takes no options (got {', '.join(sorted(given))})")
+        return None
+    try:
+        return rule.options.model_validate(given)
+    except ValidationError as exc:
+        raise ValueError("consensus_options: " + "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}"
+                                                            for e in exc.errors())) from None
 
 
 class ZenohSettings(Section):
@@ -285,10 +310,14 @@ class LearnerSettings(Section):
                                                          "(then after twice as long each time, up to 8 times it)")
     inbox_limit: int = Field(64, ge=4, description="messages that may wait from any one neighbour; a flood beyond this is "
                                                    "dropped (Algorithm 1 resends what an honest neighbour lost)")
-    consensus: ConsensusKind = Field(
-        "dinno", description="how hard each parameter is pulled towards each neighbour: dinno (alike), ramen (RAMEN's "
-                             "gradient counts, sent in the State), sigma (the BNN's own posterior sigma; model bnn), "
-                             "dgvi (DGVI's precision-weighted pool of the neighbourhood's Gaussians; model bnn)")
+    consensus: str = Field(
+        "dinno", description="how hard each parameter is pulled towards each neighbour, a consensus plug-in (swarmmap "
+                             "plugins lists those installed): dinno (alike), ramen (RAMEN's gradient counts, sent in the "
+                             "State), sigma (the BNN's own posterior sigma; model bnn), dgvi (DGVI's precision-weighted "
+                             "pool of the neighbourhood's Gaussians; model bnn), or one from another package")
+    consensus_options: dict[str, Any] = Field(
+        default_factory=dict, description="the consensus rule's own knobs, as its plug-in defines them (e.g. "
+                                          "--set 'learner.consensus_options={\"pull\": 0.5}'); the built-in rules take none")
     robust: bool = Field(
         True, description="a member that lies can neither pass for honest nor pull the team far: each round's "
                           "neighbour States are judged together, block by block, against the round's honest spread; "
@@ -346,6 +375,15 @@ class LearnerSettings(Section):
     def _shape_as_typed(cls, value: Any) -> list[int]:
         return parse_shape(value)
 
+    @field_validator("consensus")
+    @classmethod
+    def _installed_rule(cls, value: str) -> str:
+        try:
+            plugins.find("consensus", value)
+        except plugins.PluginError as exc:
+            raise ValueError(str(exc).removeprefix("learner.consensus: ")) from None
+        return value
+
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:
         if self.algorithm == "centralized" and self.transport != "inproc":
@@ -356,9 +394,7 @@ class LearnerSettings(Section):
             raise ValueError(f"model_shape must start with 2, end with 1 and have a hidden layer, got {self.model_shape}")
         if any(w < 1 for w in self.model_shape):
             raise ValueError("model_shape widths must be positive")
-        if self.consensus in ("sigma", "dgvi") and self.model != "bnn":
-            raise ValueError(f"consensus {self.consensus} weighs by the posterior's sigma: it needs model bnn (a FourierNet "
-                             "has no posterior; ramen works with either)")
+        consensus_fits(self)
         if self.unseen_weight > 0 and self.model != "bnn":
             raise ValueError("unseen_weight (the noise-contrastive prior on unseen space) shapes a Bayesian network's "
                              "weight draws: it needs model bnn")

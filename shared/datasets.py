@@ -31,6 +31,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from swarmmap.shared import plugins
+from swarmmap.shared.plugins import DatasetReader
+
 if TYPE_CHECKING:
     from swarmmap.shared.logodds import LogOddsGrid
 
@@ -390,18 +393,56 @@ def _chain(tracks: dict[tuple[str, str], PoseTrack], parent: str, child: str, t:
 # ----------------------------------------------------------------------------- any
 
 
+def _is_bag(p: Path) -> bool:
+    return p.is_dir() or p.name.lower().endswith((".bag", ".mcap", ".db3"))
+
+
+def _is_carmen(p: Path) -> bool:
+    return p.name.lower().endswith((".log", ".clf", ".log.gz", ".clf.gz", ".gz", ".txt"))
+
+
+def _read_carmen(path: Path, pose: str, topics: BagTopics | None) -> LaserLog:
+    return read_carmen(path, "log" if pose in ("auto", "log") else pose)
+
+
+# swarmmap's own readers, registered as plug-ins (pyproject.toml's swarmmap.datasets entry points)
+ROSBAG = DatasetReader(_is_bag, read_bag, "a ROS 1 bag (.bag), a rosbag2 folder or an .mcap file")
+CARMEN = DatasetReader(_is_carmen, _read_carmen, "a CARMEN log (.log, .clf, gzipped or not)")
+
+
+def reader_for(p: Path) -> tuple[str, DatasetReader]:
+    """The installed reader that claims ``p``: one from another package before swarmmap's own (a
+    package installed for a format knows it best), by name among equals."""
+    readers = sorted(plugins.installed("datasets"), key=lambda r: (r.builtin, r.name))
+    described, refused = [], []
+    for plugin in readers:
+        try:
+            reader = plugins.load("datasets", plugin.name)
+        except plugins.PluginError as exc:  # a broken reader keeps no other from reading
+            refused.append(str(exc))
+            continue
+        described.append(reader.describe)
+        if reader.claims(p):
+            return plugin.name, reader
+    give = f"give {', '.join(described[:-1])} or {described[-1]}" if len(described) > 1 else \
+        f"give {described[0]}" if described else "no dataset reader is installed"
+    raise DatasetError(p, f"not a dataset swarmmap reads: {give}" + "".join(f"; refused: {r}" for r in refused))
+
+
 def read_log(path: str | Path, pose: str = "auto", topics: BagTopics | None = None) -> LaserLog:
-    """A CARMEN log or a ROS bag, told apart by its name (and, for a folder, by being a rosbag2)."""
+    """A real LiDAR log read by the installed reader that claims it (a CARMEN log or a ROS bag, told
+    apart by its name; or a format a plug-in reads)."""
     p = Path(path)
     if not p.exists():
         raise DatasetError(p, "no such file or folder")
-    name = p.name.lower()
-    if p.is_dir() or name.endswith((".bag", ".mcap", ".db3")):
-        return read_bag(p, pose, topics)
-    if name.endswith((".log", ".clf", ".log.gz", ".clf.gz", ".gz", ".txt")):
-        return read_carmen(p, "log" if pose in ("auto", "log") else pose)
-    raise DatasetError(p, "not a dataset swarmmap reads: give a CARMEN log (.log, .clf, gzipped or not), a ROS 1 bag "
-                          "(.bag), a rosbag2 folder or an .mcap file")
+    name, reader = reader_for(p)
+    got = reader.read(p, pose, topics)
+    if not isinstance(got, LaserLog):
+        raise DatasetError(p, str(plugins.broken_contract(name, "datasets", f"its read returned a {type(got).__name__}, "
+                                                                           "not a LaserLog")))
+    if (where := plugins.origin("datasets", name)) is not None:
+        got.notes = [f"read by the {name} reader of {where}", *got.notes]
+    return got
 
 
 # ----------------------------------------------------------------------------- a team of it

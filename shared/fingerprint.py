@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from swarmmap.shared import plugins
 from swarmmap.shared.config import RunConfig
 
 CHECKPOINT_FORMAT = 3
@@ -67,7 +68,7 @@ COUNTED: dict[str, tuple[str, ...]] = {
                 "regularization", "kl_weight", "prior_sigma", "bnn_rho_init", "bnn_local_reparam", "dropout_p", "w_mu", "w_rho",
                 "mc_samples", "unseen_weight", "unseen_prior_std", "unseen_points", "unseen_draws", "unseen_margin_m",
                 "share_coverage", "optimizer_per_round", "siren_scale", "data", "window_scans", "eval_every", "map_resolution_m",
-                "max_state_distance", "consensus", "consensus_min_weight", "sigma_memory_rounds", "exchange_every",
+                "max_state_distance", "consensus", "consensus_options", "consensus_min_weight", "sigma_memory_rounds", "exchange_every",
                 "exchange_every_s", "stale_rounds", "round_wait_s", "compression", "slow_link_compression", "topk_density",
                 "quant_bits", "lowrank_rank", "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor", "sigma_max_weight"),
     "faults": ("link_success", "duplicate", "delay_s", "links", "seed", "per_round", "attack", "attackers"),
@@ -85,8 +86,9 @@ def _is_section(annotation: object) -> bool:
 
 
 def settings_fingerprint(cfg: RunConfig) -> dict:
-    """Every field that counts, as ``"section.field": value`` (JSON values), the checkpoint format
-    and, for a plan file, its SHA-256 (the same path may hold another plan)."""
+    """Every field that counts, as ``"section.field": value`` (JSON values), the checkpoint format,
+    for a plan file its SHA-256 (the same path may hold another plan), and for a consensus rule
+    from another package that package's name and version."""
     doc = cfg.model_dump(mode="json")
     out: dict = {"checkpoint_format": CHECKPOINT_FORMAT}
     for section, names in config_fields().items():
@@ -94,6 +96,10 @@ def settings_fingerprint(cfg: RunConfig) -> dict:
         skip = NOT_COUNTED.get(section, ())
         out |= {f"{section}.{n}".lstrip("."): values[n] for n in names if n not in skip}
     out["world.floorplan_sha256"] = plan_sha256(cfg.world.floorplan)
+    if not cfg.learner.consensus_options:  # as a run of a swarmmap before rules took options: its runs resume
+        del out["learner.consensus_options"]
+    if (where := plugins.origin("consensus", cfg.learner.consensus)) is not None:  # a rule from another package
+        out["learner.consensus_plugin"] = where
     return out
 
 

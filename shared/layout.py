@@ -14,16 +14,19 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from swarmmap.shared.plugins import load
+
 if TYPE_CHECKING:
     from torch import nn
 
-# Learning rules whose State carries a second parameter-sized vector after the parameters.
-EXTRA_VECTOR = {"algorithm": {"dsgt"}, "consensus": {"ramen"}}
+# Learning rules whose State carries a second parameter-sized vector after the parameters (a consensus
+# rule says so itself: its plug-in's extra_vector).
+EXTRA_VECTOR_ALGORITHMS = {"dsgt"}
 
 
 def state_copies(algorithm: str, consensus: str) -> int:
     """How many parameter-sized vectors a State of this rule holds (1, or 2 with a tracker or counts)."""
-    extra = algorithm in EXTRA_VECTOR["algorithm"] or (algorithm == "dinno" and consensus in EXTRA_VECTOR["consensus"])
+    extra = algorithm in EXTRA_VECTOR_ALGORITHMS or (algorithm == "dinno" and load("consensus", consensus).extra_vector)
     return 2 if extra else 1
 
 

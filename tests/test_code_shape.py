@@ -8,12 +8,10 @@ import subprocess
 import sys
 import typing
 
-import pytest
-
-from swarmmap.services.learner.consensus import RULES
 from swarmmap.services.learner.registry import NODES
+from swarmmap.shared import plugins
 from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.layout import EXTRA_VECTOR
+from swarmmap.shared.layout import EXTRA_VECTOR_ALGORITHMS
 from tests.conftest import REPO
 
 LEARNER = REPO / "services" / "learner"
@@ -49,11 +47,13 @@ def test_algorithm1_imports_no_protocol_codec_bus_or_zenoh():
     assert "def finish_round(self)" in src and "def on_state(self" in src and "def on_complete(self" in src
 
 
-@pytest.mark.parametrize("field, registry", [("consensus", RULES), ("algorithm", NODES)])
-def test_registries_name_exactly_what_the_config_allows(field, registry):
-    allowed = set(typing.get_args(LearnerSettings.model_fields[field].annotation))
-    assert set(registry) == allowed
+def test_the_learning_rules_registry_names_exactly_what_the_config_allows():
+    assert set(NODES) == set(typing.get_args(LearnerSettings.model_fields["algorithm"].annotation))
 
 
-def test_every_rule_whose_state_carries_more_is_known_to_the_layout():
-    assert EXTRA_VECTOR["consensus"] <= set(RULES) and EXTRA_VECTOR["algorithm"] <= set(NODES)
+def test_every_consensus_module_is_a_registered_plugin_and_says_what_its_state_carries():
+    builtin = {p.name: plugins.load("consensus", p.name) for p in plugins.installed("consensus") if p.builtin}
+    modules = {path.stem for path in (LEARNER / "consensus").glob("*.py")} - {"__init__", "base", "builtin"}
+    assert set(builtin) == modules == {"dinno", "ramen", "sigma", "dgvi"}
+    assert [name for name, rule in builtin.items() if rule.extra_vector] == ["ramen"]
+    assert EXTRA_VECTOR_ALGORITHMS <= set(NODES)

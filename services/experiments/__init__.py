@@ -34,12 +34,13 @@ import sys
 import typing
 from pathlib import Path
 
+from swarmmap.shared import plugins
 from swarmmap.shared.compression import COMPRESSIONS
 from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, LearnerSettings
 
 # The choices, as the config's fields allow them.
+BUILTIN_RULES = ("dinno", "ramen", "sigma", "dgvi")  # the consensus experiment's rules, in its order
 STRATEGIES = typing.get_args(LearnerSettings.model_fields["regularization"].annotation)
-CONSENSUS = typing.get_args(LearnerSettings.model_fields["consensus"].annotation)
 
 
 
@@ -78,14 +79,16 @@ def add_parser(sub, text: str = "The paper's experiments (kl-sweep, regularizati
             e.add_argument("--kl-weights", type=float, nargs="+", default=None,
                            help="kl_weight values of the grid; default: the config's")
         if name == "consensus":
-            e.add_argument("--consensus", nargs="+", choices=CONSENSUS, default=list(CONSENSUS), help="consensus rules")
+            rules = plugins.names("consensus")  # any installed; by default swarmmap's own
+            e.add_argument("--consensus", nargs="+", choices=rules, default=list(BUILTIN_RULES),
+                           help="consensus rules (any installed: swarmmap plugins lists them)")
             e.add_argument("--link-success", type=float, nargs="+", default=[1.0, 0.3, 0.05],
                            help="probabilities that a message reaches a neighbour")
             e.add_argument("--exchange-every", type=int, nargs="+", default=[1, 10], help="exchange intervals (rounds)")
             e.add_argument("--compression", nargs="+", choices=COMPRESSIONS,
                            default=[c for c in COMPRESSIONS if c != "lowrank"],  # (fails under Adam: README)
                            help="State encodings, each run over perfect links exchanging every round")
-            e.add_argument("--compression-consensus", nargs="+", choices=CONSENSUS, default=["dinno"],
+            e.add_argument("--compression-consensus", nargs="+", choices=rules, default=["dinno"],
                            help="consensus rules the compression runs use")
             e.add_argument("--round-wait", type=float, default=0.3,
                            help="below 100%% link success, the most a round waits for messages (learner.round_wait_s)")

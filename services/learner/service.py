@@ -69,6 +69,7 @@ from swarmmap.shared.graphs import GraphError, run_graph
 from swarmmap.shared.layout import StateLayout
 from swarmmap.shared.models import pick_device, set_flat
 from swarmmap.shared.networks import build_network
+from swarmmap.shared.plugins import origin
 from swarmmap.shared.protocol import CHAINED_ENCODINGS, MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap, encode_state
 from swarmmap.shared.slots import ComputeSlots, slots_dir
 from swarmmap.shared.unseen import Coverage
@@ -334,7 +335,9 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         world = bus.world(cfg.world_wait_s(), stop)
         if world is None:
             return 0 if stop.is_set() else 3
-        log.info("robots %s (%s transport): model %s %s on %s", robots, s.transport, s.model, s.model_shape, device)
+        where = origin("consensus", s.consensus)
+        log.info("robots %s (%s transport): model %s %s on %s, consensus %s%s", robots, s.transport, s.model, s.model_shape,
+                 device, s.consensus, f" (from {where})" if where else "")
         try:
             for learner in learners:
                 learner.prepare(world, stop)

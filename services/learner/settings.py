@@ -10,9 +10,11 @@ learner reads the section's fields (the service passes these on).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from swarmmap.services.learner.exchange import ExchangeRules
-from swarmmap.shared.config import LearnerSettings
+from swarmmap.shared.config import LearnerSettings, consensus_options
+from swarmmap.shared.plugins import load
 
 
 def exchange_rules(s: LearnerSettings) -> ExchangeRules:
@@ -68,16 +70,19 @@ class DinnoSettings:
 
 @dataclass(frozen=True)
 class ConsensusSettings:
-    """The consensus rule's knobs (sigma's; dinno and ramen have none)."""
+    """The consensus rule's knobs: sigma's fields, and a plug-in's own options (learner.consensus_options,
+    validated by the rule's options model; None for a rule that takes none)."""
 
     min_weight: float = 0.05  # sigma: a pull stays within [this, 2 - this] x DiNNO's
     memory_rounds: int = 100  # sigma: how long an outdated State keeps pulling, its sigma widened
     max_weight: float | None = None  # sigma: at most this x DiNNO's pull, the target as far (None: 2 - min_weight, the pull only)
+    options: Any = None
 
     @classmethod
     def of(cls, s: LearnerSettings) -> ConsensusSettings:
+        options = consensus_options(s.consensus, load("consensus", s.consensus), s.consensus_options)
         return cls(s.consensus_min_weight, s.sigma_memory_rounds, min(s.sigma_max_weight, 2 - s.consensus_min_weight)
-                   if s.robust else None)
+                   if s.robust else None, options)
 
 
 @dataclass(frozen=True)

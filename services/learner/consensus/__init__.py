@@ -1,30 +1,26 @@
-"""Consensus rules, one class a module, and the registry that names them (``learner.consensus``).
+"""Consensus rules, one class a module, each registered as a plug-in (``learner.consensus``).
 
-See :mod:`.base` for what a rule is and how to add one.
+The built-in rules' specs are in :mod:`.builtin`, named in swarmmap's ``pyproject.toml`` under the
+entry-point group ``swarmmap.consensus`` exactly as a rule from another package is
+(swarmmap.shared.plugins). See :mod:`.base` for what a rule is and docs/layout.md for adding one.
+This package imports no torch: a config names a rule, and every service that validates one
+loads its spec.
 """
 
 from __future__ import annotations
 
-import torch
+from typing import Any
 
-from swarmmap.services.learner.consensus.base import ConsensusRule
-from swarmmap.services.learner.consensus.dgvi import DgviRule
-from swarmmap.services.learner.consensus.dinno import DinnoRule
-from swarmmap.services.learner.consensus.ramen import RamenRule
-from swarmmap.services.learner.consensus.sigma import SigmaRule
-from swarmmap.services.learner.settings import ConsensusSettings
+from swarmmap.shared.plugins import broken_contract, load
 
-# name -> rule(model, settings): the one place a rule's name becomes its class
-RULES = {
-    "dinno": lambda model, s: DinnoRule(),
-    "ramen": lambda model, s: RamenRule(sum(p.numel() for p in model.parameters()), next(model.parameters()).device),
-    "sigma": lambda model, s: SigmaRule(model, s.min_weight, s.memory_rounds, s.max_weight),
-    "dgvi": lambda model, s: DgviRule(model),
-}
+# what Algorithm 1's node update calls on a rule (services/learner/consensus/base.py)
+RULE_METHODS = ("start_round", "keep_for", "targets", "dual_step", "data_loss", "extra")
 
 
-def consensus_rule(name: str, model: torch.nn.Module, settings: ConsensusSettings) -> ConsensusRule:
-    """The rule called ``name`` for one node's ``model``."""
-    if name not in RULES:
-        raise ValueError(f"unknown consensus rule {name!r}; known: {', '.join(RULES)}")
-    return RULES[name](model, settings)
+def consensus_rule(name: str, model: Any, settings: Any) -> Any:
+    """The rule called ``name`` for one node's ``model`` (a PluginError naming a part that cannot be had)."""
+    rule = load("consensus", name).make(model, settings)
+    missing = [m for m in RULE_METHODS if not callable(getattr(rule, m, None))]
+    if missing:
+        raise broken_contract(name, "consensus", f"the rule it makes has no {', '.join(missing)}")
+    return rule

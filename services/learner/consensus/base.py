@@ -4,10 +4,13 @@ DiNNO's consensus term for node i is rho x sum_j ||theta - z_ij||^2 plus a dual 
 rule gives, for every neighbour j whose State the node holds, a target z_ij and a weight a_ij per
 parameter (penalty rho x sum_j a_ij (theta - z_ij)^2; a weight of None means 1 everywhere) and the
 link's dual step. Rules: :mod:`.dinno` (DiNNO exactly), :mod:`.ramen` (RAMEN's gradient counts),
-:mod:`.sigma` (the Bayesian network's own posterior spread); :data:`~swarmmap.services.learner.consensus.RULES`
-names them. Adding a rule: a module here with one class, its line in ``RULES``, its name in
-:data:`~swarmmap.shared.config.ConsensusKind` (and in :data:`~swarmmap.shared.layout.EXTRA_VECTOR`
-when its State carries a vector after the parameters).
+:mod:`.sigma` (the Bayesian network's own posterior spread), :mod:`.dgvi` (DGVI's pooled Gaussians).
+
+Adding a rule: a class with these methods and a :class:`~swarmmap.shared.plugins.ConsensusPlugin`
+naming it (its models, whether its State carries a vector after the parameters, its options),
+registered as an entry point in the group ``swarmmap.consensus``: here, a module of its own, a
+spec in :mod:`.builtin` and a line in swarmmap's ``pyproject.toml``; from another package, the
+same in that package (docs/layout.md).
 """
 
 from __future__ import annotations

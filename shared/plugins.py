@@ -1,0 +1,221 @@
+"""Parts found by name through Python entry points: consensus rules and dataset readers.
+
+swarmmap's own parts are registered the same way as anyone's, in its ``pyproject.toml``; a
+package of one's own adds a part without touching swarmmap by declaring an entry point in the
+part's group, e.g. in that package's ``pyproject.toml``::
+
+    [project.entry-points."swarmmap.consensus"]
+    damped = "my_rules:DAMPED"           # a ConsensusPlugin
+
+    [project.entry-points."swarmmap.datasets"]
+    scans-csv = "my_readers:SCANS_CSV"   # a DatasetReader
+
+and installing it beside swarmmap. ``swarmmap plugins`` lists what is installed and where each
+comes from; the config refuses a name no installed part has (naming the close ones), and the
+settings fingerprint of a run names the package and version of a part from another package.
+A part that fails to import or breaks its contract is refused with a :class:`PluginError` that
+names it and its package. docs/layout.md says how to write one.
+
+An entry point names a spec object (:class:`ConsensusPlugin`, :class:`DatasetReader`): keep the
+module it lives in light (import torch and the like inside ``make``/``read``), since every
+service that validates a config loads the spec of the part the config names.
+"""
+
+from __future__ import annotations
+
+import difflib
+import functools
+import importlib.metadata as metadata
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+class PluginError(Exception):
+    """A part that cannot be had: unknown, ambiguous, failing to import, or breaking its contract."""
+
+
+@dataclass(frozen=True)
+class ConsensusPlugin:
+    """A consensus rule (``learner.consensus``): how hard each parameter is pulled towards each
+    neighbour in DiNNO's update (services/learner/consensus/base.py says what a rule is).
+
+    ``make(model, settings)`` builds one node's rule for its torch ``model`` (settings: the
+    learner's ConsensusSettings, ``options`` among them: ``learner.consensus_options`` validated
+    by ``options``); ``models``: the learner models it works with (None: any); ``extra_vector``:
+    its States carry a vector after the parameters (what :meth:`extra` returns); ``summary``:
+    one line for ``swarmmap plugins`` and the docs."""
+
+    make: Callable[[Any, Any], Any]
+    summary: str
+    models: tuple[str, ...] | None = None
+    why_models: str = ""
+    extra_vector: bool = False
+    options: type | None = None  # a pydantic model of the rule's own knobs
+
+
+@dataclass(frozen=True)
+class DatasetReader:
+    """A reader of real LiDAR logs (``world.dataset``, ``swarmmap up --dataset``).
+
+    ``claims(path)`` says whether a file or folder is one it reads (by its name, cheaply);
+    ``read(path, pose, topics)`` returns a :class:`~swarmmap.shared.datasets.LaserLog` (``pose``:
+    ``world.dataset_pose``; ``topics``: a BagTopics, for readers of ROS bags) or raises
+    :class:`~swarmmap.shared.datasets.DatasetError` naming what is wrong; ``describe`` says
+    what it reads, for help texts and refusals."""
+
+    claims: Callable[[Path], bool]
+    read: Callable[..., Any]
+    describe: str
+
+
+@dataclass(frozen=True)
+class Group:
+    """A kind of part: its entry-point group, the config field that names one, and its spec type."""
+
+    name: str
+    field: str
+    spec: type
+
+    @property
+    def entry_points(self) -> str:
+        return f"swarmmap.{self.name}"
+
+
+GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", ConsensusPlugin),
+                              Group("datasets", "world.dataset", DatasetReader))}
+
+
+@dataclass(frozen=True)
+class Plugin:
+    """One installed part: its group and name, the entry point's target and the package it comes from."""
+
+    group: str
+    name: str
+    target: str
+    package: str
+    version: str
+
+    @property
+    def builtin(self) -> bool:
+        return self.package == "swarmmap"
+
+    def origin(self) -> str:
+        """Where it comes from, as ``package version``."""
+        return f"{self.package} {self.version}"
+
+    def describe(self) -> str:
+        return f"{GROUPS[self.group].name} plug-in {self.name!r} ({self.target}, from {self.origin()})"
+
+
+def _group(group: str) -> Group:
+    if group not in GROUPS:
+        raise PluginError(f"no such kind of plug-in {group!r}; known: {', '.join(GROUPS)}")
+    return GROUPS[group]
+
+
+@functools.cache
+def _scan(group: str) -> tuple[dict[str, Plugin], dict[str, list[Plugin]]]:
+    """The group's parts by name, and the names that more than one package registers."""
+    found: dict[str, list[Plugin]] = {}
+    for ep in metadata.entry_points(group=_group(group).entry_points):
+        dist = ep.dist
+        plugin = Plugin(group, ep.name, ep.value, dist.name if dist else "?", dist.version if dist else "?")
+        if plugin not in found.get(ep.name, []):
+            found.setdefault(ep.name, []).append(plugin)
+    one = {name: ps[0] for name, ps in found.items() if len(ps) == 1}
+    many = {name: ps for name, ps in found.items() if len(ps) > 1}
+    return one, many
+
+
+def installed(group: str) -> list[Plugin]:
+    """Every part of ``group`` installed, built-in ones first, then by name (a name two packages
+    register appears twice)."""
+    one, many = _scan(group)
+    every = [*one.values(), *(p for ps in many.values() for p in ps)]
+    return sorted(every, key=lambda p: (not p.builtin, p.name, p.package))
+
+
+def names(group: str) -> list[str]:
+    """The names a config may give for ``group``, built-in ones first."""
+    return list(dict.fromkeys(p.name for p in installed(group)))
+
+
+def find(group: str, name: str) -> Plugin:
+    """The installed part called ``name``; a PluginError naming the close names, or the packages
+    that both register it."""
+    one, many = _scan(group)
+    if name in many:
+        raise PluginError(f"{_group(group).field}: {name!r} is registered by more than one package "
+                          f"({', '.join(sorted(p.origin() for p in many[name]))}): uninstall one of them")
+    if name not in one:
+        close = difflib.get_close_matches(name, names(group), n=3, cutoff=0.6)
+        hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+        raise PluginError(f"{_group(group).field}: no {group} plug-in is called {name!r} (installed: "
+                          f"{', '.join(names(group)) or 'none'}; `swarmmap plugins` lists them){hint}")
+    return one[name]
+
+
+@functools.cache
+def load(group: str, name: str) -> Any:
+    """The spec object of the part called ``name``, imported and checked against its group's
+    contract; a PluginError naming the part and its package when it cannot be."""
+    plugin = find(group, name)
+    try:
+        obj = metadata.EntryPoint(plugin.name, plugin.target, GROUPS[group].entry_points).load()
+    except Exception as exc:  # whatever a foreign module raises on import is that module's fault
+        raise PluginError(f"{plugin.describe()} failed to import: {type(exc).__name__}: {exc}") from None
+    spec = GROUPS[group].spec
+    if not isinstance(obj, spec):
+        raise PluginError(f"{plugin.describe()} breaks its contract: {plugin.target} is a {type(obj).__name__}, "
+                          f"not a swarmmap.shared.plugins.{spec.__name__}")
+    return obj
+
+
+def origin(group: str, name: str) -> str | None:
+    """``package version`` of a part from another package (what the settings fingerprint records);
+    None for a built-in one or a name nothing registers."""
+    one, _ = _scan(group)
+    plugin = one.get(name)
+    return None if plugin is None or plugin.builtin else plugin.origin()
+
+
+def refresh() -> None:
+    """Forget what was found and loaded (after installing a package into a running process)."""
+    _scan.cache_clear()
+    load.cache_clear()
+
+
+def broken_contract(plugin_name: str, group: str, what: str) -> PluginError:
+    """The error for a part whose product breaks its group's contract (a rule without a method, a
+    reader that returns no LaserLog), naming the part and its package."""
+    try:
+        where = find(group, plugin_name).describe()
+    except PluginError:
+        where = f"{group} plug-in {plugin_name!r}"
+    return PluginError(f"{where} breaks its contract: {what}")
+
+
+def report() -> tuple[list[str], int]:
+    """What ``swarmmap plugins`` prints: every group's parts, each loaded and checked (name,
+    where it comes from, what it is, or why it is refused); and how many are refused."""
+    lines, refused = [], 0
+    for group in GROUPS.values():
+        lines.append(f"{group.name} ({group.field}; entry points {group.entry_points}):")
+        _, many = _scan(group.name)
+        for plugin in installed(group.name):
+            try:
+                if plugin.name in many:
+                    find(group.name, plugin.name)
+                spec = load(group.name, plugin.name)
+                what = spec.summary if isinstance(spec, ConsensusPlugin) else spec.describe
+                if isinstance(spec, ConsensusPlugin) and spec.models:
+                    what += f" (model {' or '.join(spec.models)})"
+            except PluginError as exc:
+                refused += 1
+                what = f"REFUSED: {exc}"
+            lines.append(f"  {plugin.name:<12} {plugin.origin():<28} {what}")
+        if not installed(group.name):
+            lines.append("  (none installed)")
+    return lines, refused

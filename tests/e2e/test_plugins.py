@@ -1,0 +1,109 @@
+"""Plug-ins from a package outside swarmmap, installed with pip into a fresh virtual environment:
+a consensus rule and a dataset reader chosen by name in a whole run over Zenoh, listed by
+``swarmmap plugins``; broken ones refused by name in seconds. No file of swarmmap changes."""
+
+from __future__ import annotations
+
+import json
+import site
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from swarmmap.shared.datasets import read_log
+from tests.conftest import KIT_DATA, REPO, clean_env
+
+pytestmark = pytest.mark.e2e
+FIXTURES = REPO / "tests" / "fixtures"
+INTEL = KIT_DATA / "carmen" / "intel-corrected.log.gz"
+
+
+@pytest.fixture(scope="module")
+def venv(tmp_path_factory):
+    """A new virtual environment that sees swarmmap and its dependencies where this one has them
+    (a .pth adds this environment's site-packages) and has the two plug-in packages pip-installed."""
+    root = tmp_path_factory.mktemp("venv")
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(root)], check=True)
+    python = root / "bin" / "python"
+    own = subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], capture_output=True,
+                         text=True, check=True).stdout.strip()
+    outer = [p for p in site.getsitepackages() if p.endswith("site-packages")][0]
+    (root / "lib" / own.split("/lib/", 1)[1] / "swarmmap-env.pth").write_text(f"import site; site.addsitedir({outer!r})\n")
+    for package in ("plugin_package", "broken_plugin"):
+        proc = subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps",
+                               "--no-build-isolation", "--no-index", str(FIXTURES / package)],
+                              capture_output=True, text=True, env=clean_env())
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return python
+
+
+def swarmmap(python, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([str(python), "-m", "swarmmap.services.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=clean_env())
+
+
+def test_plugins_lists_each_part_with_its_package_and_refuses_the_broken_ones(venv):
+    proc = swarmmap(venv, "plugins", timeout=60)
+    rows = {line.split()[0]: line for line in proc.stdout.splitlines() if line.startswith("  ")}
+    assert "swarmmap-example-plugins 1.2.0" in rows["damped"] and "every pull scaled" in rows["damped"]
+    assert "swarmmap-example-plugins 1.2.0" in rows["scans-csv"] and "*.scans.csv" in rows["scans-csv"]
+    assert rows["sigma"].split()[1:3] == ["swarmmap", "0.1.0"]
+    assert "REFUSED" in rows["crashes"] and "failed to import: ImportError" in rows["crashes"]
+    assert "breaks its contract" in rows["not-a-rule"] and "swarmmap-broken-plugins 0.0.1" in rows["not-a-rule"]
+    assert proc.returncode == 2 and "2 plug-in(s) refused" in proc.stderr
+
+
+@pytest.mark.parametrize("rule, why", [("crashes", "failed to import: ImportError: this rule needs a library"),
+                                       ("not-a-rule", "breaks its contract: swarmmap_broken_plugins:NOT_A_RULE is a dict")])
+def test_a_run_naming_a_broken_plugin_is_refused_by_name_in_seconds(venv, tmp_path, rule, why):
+    start = time.monotonic()
+    proc = swarmmap(venv, "up", "--preset", "smoke", "--set", f"learner.consensus={rule}", "--run-dir", str(tmp_path / "run"),
+                    timeout=120)
+    took = time.monotonic() - start
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert f"consensus plug-in {rule!r}" in proc.stderr and "swarmmap-broken-plugins 0.0.1" in proc.stderr and why in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "run").exists()
+    assert took < 20, f"refused after {took:.1f} s"
+
+
+def write_scans_csv(log, path, every: int = 2) -> None:
+    """The log in the plug-in's format: t, x, y, heading, angle_min, angle_increment, range_max, ranges."""
+    step = float(log.angles[1] - log.angles[0])
+    rows = [[log.t[i], *log.poses[i], log.angles[0], step, log.no_return_m, *log.ranges[i]] for i in range(0, len(log), every)]
+    np.savetxt(path, np.array(rows), delimiter=",", fmt="%.5f", header="t,x,y,heading,angle_min,angle_increment,range_max,ranges")
+
+
+def test_a_smoke_run_trains_with_the_plugins_rule_on_the_plugins_log(venv, tmp_path):
+    if not INTEL.exists():
+        pytest.skip("kit data ../shared/data/carmen not present")
+    log = tmp_path / "intel.scans.csv"
+    write_scans_csv(read_log(INTEL), log)
+    run = tmp_path / "run"
+    proc = swarmmap(venv, "up", "--preset", "smoke", "--dataset", str(log), "--robots", "3", "--rounds", "20", "--no-observer",
+                    "--set", "learner.consensus=damped", "--set", 'learner.consensus_options={"pull": 0.5}', "--run-dir", str(run))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["ok"] and len(summary["learners"]) == 3
+    for v in summary["learners"].values():  # each learner trained over Zenoh with the plug-in's rule, and learned
+        assert v["finished"] and v["final_val_bce"] < 0.9 * v["first_val_bce"]
+    config = (run / "config.yaml").read_text()
+    assert "consensus: damped" in config and "intel.scans.csv" in config
+    world = (run / "logs" / "world-0.log").read_text()
+    assert "read by the scans-csv reader of swarmmap-example-plugins 1.2.0" in world and "held-out validation set" in world
+    learner = (run / "logs" / "learner-0.log").read_text()
+    assert "consensus damped" in learner
+
+
+def test_a_smoke_run_on_a_plan_trains_with_the_plugins_rule_over_zenoh(venv, tmp_path):
+    run = tmp_path / "run"
+    proc = swarmmap(venv, "up", "--preset", "smoke", "--rounds", "20", "--no-observer", "--set", "learner.consensus=damped",
+                    "--run-dir", str(run))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["ok"] and all(v["finished"] for v in summary["learners"].values())
+    cfg = (run / "config.yaml").read_text()
+    assert "transport: zenoh" in cfg and "consensus: damped" in cfg
+    assert "consensus damped (from swarmmap-example-plugins 1.2.0)" in (run / "logs" / "learner-1.log").read_text()
