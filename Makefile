@@ -1,5 +1,5 @@
 # swarmmap: `make run` sets up and runs the demo, `make test` sets up and runs the tests (unit and
-# end to end), `make test-deploy` the deploy tier (real Docker engine and SLURM cluster, set up
+# end to end), `make test-unit` the unit tests alone (minutes, no process or socket), `make test-deploy` the deploy tier (real Docker engine and SLURM cluster, set up
 # from ../shared/kit; needs root), `make test-faults` the fault trials (learners killed at random rounds),
 # `make test-network` a team across network namespaces (routers killed, links cut; needs root).
 PYTHON ?= python3
@@ -10,7 +10,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 RUN_ARGS ?=
 
-.PHONY: setup run test test-deploy test-faults test-network clean
+.PHONY: setup run test test-unit test-deploy test-faults test-network clean
 
 $(BIN)/swarmmap: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +25,10 @@ run: setup
 
 test: setup
 	$(BIN)/python -m pytest -ra --durations=15 -m "not deploy and not faults and not network"
+
+# The fast tier: no process started, no socket opened (tests/conftest.py stops a test that tries).
+test-unit: setup
+	SWARMMAP_TEST_TIER=unit $(BIN)/python -m pytest -ra -q -m "not e2e and not integration and not deploy and not faults and not network"
 
 test-faults: setup
 	$(BIN)/python -m pytest -ra -m faults

@@ -23,6 +23,40 @@ SWARMMAP = [sys.executable, "-m", "swarmmap.services.cli"]  # the `swarmmap` com
 PROMPT_S = 30.0
 
 
+# `make test-unit`: the tests that start no process and open no socket (no Zenoh session, no
+# service); a test that tries is stopped with a message saying to mark it `integration`.
+UNIT_TIER = os.environ.get("SWARMMAP_TEST_TIER") == "unit"
+
+
+class NotAUnitTest(RuntimeError):
+    """Raised in the unit tier by whatever starts a process or opens a socket."""
+
+
+@pytest.fixture(autouse=True)
+def _unit_tier_starts_no_process_and_opens_no_socket(monkeypatch):
+    if not UNIT_TIER:
+        yield
+        return
+    import multiprocessing.process
+    import subprocess
+
+    import zenoh
+
+    def refuse(what: str):
+        def refused(*args, **kwargs):
+            raise NotAUnitTest(f"the unit tier (make test-unit) {what}: mark this test (or its module) "
+                               "pytest.mark.integration")
+        return refused
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", refuse("starts no process"))
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refuse("starts no process"))
+    monkeypatch.setattr(os, "fork", refuse("starts no process"))
+    for method in ("bind", "connect", "connect_ex"):
+        monkeypatch.setattr(socket.socket, method, refuse("opens no socket"))
+    monkeypatch.setattr(zenoh, "open", refuse("opens no Zenoh session"))
+    yield
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """Under CI (``CI=true``) a test skipped for missing kit data fails: a green CI ran them all."""

@@ -8,6 +8,8 @@ import subprocess
 import sys
 import typing
 
+import pytest
+
 from swarmmap.services.learner.registry import NODES
 from swarmmap.shared import plugins
 from swarmmap.shared.config import LearnerSettings
@@ -17,6 +19,7 @@ from tests.conftest import REPO
 LEARNER = REPO / "services" / "learner"
 
 
+@pytest.mark.integration
 def test_no_function_in_services_or_shared_is_more_complex_than_15():
     proc = subprocess.run([sys.executable, "-m", "ruff", "check", "--select", "C901", "--config",
                            "lint.mccabe.max-complexity=15", "services", "shared"], cwd=REPO, capture_output=True, text=True)
@@ -35,6 +38,7 @@ def test_learner_classes_are_at_most_150_lines_and_functions_60():
     assert not [(where, n) for where, n in spans((ast.FunctionDef, ast.AsyncFunctionDef)) if n > 60]
 
 
+@pytest.mark.integration
 def test_algorithm1_imports_no_protocol_codec_bus_or_zenoh():
     """Not even through what it imports: the round machine sees vectors and rounds only."""
     code = ("import sys, swarmmap.services.learner.algorithm1, swarmmap.services.learner.clock\n"

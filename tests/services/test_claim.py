@@ -29,6 +29,7 @@ def _claim_at_once(folder, barrier, holder, robots, out):
     out.put((holder, claim_robot(folder, "learner", robots, holder=holder)))
 
 
+@pytest.mark.integration
 def test_replicas_claiming_at_once_get_distinct_ids(tmp_path):
     robots = 8
     ctx = multiprocessing.get_context("fork")
@@ -132,6 +133,7 @@ def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.integration
 def test_the_signer_issues_each_identity_to_one_key_and_no_private_key_is_shared(tmp_path):
     run_dir, shared = tmp_path / "compose", tmp_path / "shared"
     signer = shared / "signer"

@@ -32,6 +32,7 @@ def help_of(*command: str) -> str:
     return subparsers(build_parser())[" ".join(command)].format_help()
 
 
+@pytest.mark.integration
 def test_version_comes_from_the_package_metadata():
     proc = subprocess.run([*SWARMMAP, "--version"], capture_output=True, text=True, timeout=30, env=clean_env())
     assert proc.returncode == 0 and proc.stdout.strip() == f"swarmmap {metadata.version('swarmmap')}"

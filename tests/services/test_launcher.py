@@ -8,6 +8,8 @@ import sys
 import threading
 import time
 
+import pytest
+
 from swarmmap.services.up.launcher import Child, Launcher, host_cores
 from swarmmap.shared.config import RunConfig, UpSettings
 
@@ -16,6 +18,7 @@ def sleeper(seconds: float) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", f"import time; time.sleep({seconds})"])
 
 
+@pytest.mark.integration
 def test_a_learner_gets_its_own_grace_to_write_its_outputs(tmp_path):
     """Once the run is over a learner may still be writing its model and maps: ``up`` waits up
     to ``learner_grace_s`` for it, while the other services get only ``stop_grace_s``."""
@@ -37,6 +40,7 @@ def test_a_learner_gets_its_own_grace_to_write_its_outputs(tmp_path):
             c.proc.wait()
 
 
+@pytest.mark.integration
 def test_a_restarted_service_not_up_again_when_the_run_ends_gets_no_grace(tmp_path):
     """A learner restarted just before the run ended, still starting (no liveliness token), will
     never hear ``run/done`` (the recorder has gone): ``up`` does not wait for it, while a restarted
@@ -58,6 +62,7 @@ def test_a_restarted_service_not_up_again_when_the_run_ends_gets_no_grace(tmp_pa
             c.proc.wait()
 
 
+@pytest.mark.integration
 def test_up_gives_learners_compute_slots_when_they_outnumber_the_cores(tmp_path):
     """More learner processes than this host's cores: ``up`` lets at most as many train at once
     as there are cores; fewer, in process, or a value the user set: left as it is."""
@@ -81,6 +86,7 @@ def service(tmp_path, name: str, code: str) -> Child:
     return Child(service_name, int(ident), proc, log_path)
 
 
+@pytest.mark.integration
 def test_a_service_that_refuses_its_settings_ends_the_run_at_once_with_its_reason_in_the_summary(tmp_path):
     """Status 2 is a refusal that would only repeat: ``up`` stops waiting for the recorder at
     once (not after FAILURE_GRACE_S) and summary.json says which service refused and why."""

@@ -26,6 +26,7 @@ def peak_rss_mb(pid: int) -> tuple[float, float]:
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.integration
 def test_a_flood_of_scans_is_held_back_not_buffered_and_every_scan_is_served(tmp_path, run_id):
     port = free_port()
     log_path = tmp_path / "lidar.log"
@@ -57,6 +58,7 @@ def test_a_flood_of_scans_is_held_back_not_buffered_and_every_scan_is_served(tmp
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.integration
 def test_points_of_scans_that_come_before_the_learners_subscription_is_known_are_held_not_lost(tmp_path, run_id):
     """A learner's subscription can reach the streamer after the world has started driving: the
     samples of the first scans wait for it (Zenoh drops what no known subscriber matches). Here

@@ -71,6 +71,7 @@ def test_up_records_every_learners_mean_and_std_maps(tmp_path):
     assert report["maps"] >= 2 and report["map_time_mean_s"] > 0
 
 
+@pytest.mark.integration
 def test_observer_without_a_sink_is_refused(tmp_path):
     proc = subprocess.run([*SWARMMAP, "observer", "--preset", "smoke", "--set", "observer.save=null"],
                           capture_output=True, text=True, timeout=60, env=clean_env())
@@ -94,6 +95,7 @@ def listening_addresses(port: int) -> set[str]:
 
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("bind, expected", [(None, {"127.0.0.1"}), ("0.0.0.0", {"0.0.0.0"})])
+@pytest.mark.integration
 def test_the_web_viewer_and_its_grpc_server_listen_on_loopback_unless_told_otherwise(tmp_path, caplog, bind, expected):
     web, grpc = free_port(), free_port()
     settings = {"serve_web": True, "web_port": web, "grpc_port": grpc} | ({"bind": bind} if bind else {})

@@ -25,6 +25,7 @@ def swarmmap(*args: str, cwd, env: dict | None = None) -> tuple[subprocess.Compl
 
 
 @pytest.mark.parametrize("command", ["up", "prepare"])
+@pytest.mark.integration
 def test_a_missing_plan_is_refused_in_seconds_and_nothing_is_created(tmp_path, command):
     proc, took = swarmmap(command, "--floorplan", "missing.svg", "--run-dir", str(tmp_path / "run"), cwd=tmp_path)
     assert proc.returncode == 2, proc.stdout + proc.stderr
@@ -34,6 +35,7 @@ def test_a_missing_plan_is_refused_in_seconds_and_nothing_is_created(tmp_path, c
     assert sorted(os.listdir(tmp_path)) == [], "something was created before the refusal"
 
 
+@pytest.mark.integration
 def test_a_misspelt_environment_variable_stops_up_naming_it(tmp_path):
     proc, took = swarmmap("up", "--preset", "smoke", cwd=tmp_path, env={"SWARMMAP_LERNER__ROUNDS": "3"})
     assert proc.returncode == 2 and took < PROMPT_S
@@ -98,6 +100,7 @@ def test_every_problem_is_reported_at_once_and_nothing_is_written(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
 
 
+@pytest.mark.integration
 def test_prepare_refuses_an_endpoint_and_writes_no_config(tmp_path):
     proc, took = swarmmap("prepare", "--preset", "smoke", "--run-dir", str(tmp_path / "run"), "--zenoh-connect", "router:7447",
                           cwd=tmp_path)
@@ -106,6 +109,7 @@ def test_prepare_refuses_an_endpoint_and_writes_no_config(tmp_path):
 
 
 @pytest.mark.parametrize("command", [("up",), ("prepare",), ("recorder", "--zenoh-insecure")])
+@pytest.mark.integration
 def test_a_read_only_run_directory_is_refused_at_start_naming_it(tmpfs, tmp_path, command):
     """Root too: a read-only disk is found by writing, not by asking for permissions."""
     ro = tmpfs("1m", read_only=True)

@@ -57,6 +57,7 @@ def test_compare_prints_each_runs_result_and_plots_both_curves(tmp_path, capsys)
         compare(argparse.Namespace(runs=[str(tmp_path / "nope")], out=out, target=None))
 
 
+@pytest.mark.integration
 def test_a_wrong_path_is_a_message_and_status_2_not_a_traceback(tmp_path):
     for args in (["runs", str(tmp_path / "nope")], ["logs", str(tmp_path / "nope")], ["compare", str(tmp_path)]):
         proc = subprocess.run([*SWARMMAP, *args], capture_output=True, text=True, timeout=30, env=clean_env())

@@ -21,6 +21,7 @@ def status(*args: str) -> tuple[subprocess.CompletedProcess, float]:
     return proc, time.monotonic() - start
 
 
+@pytest.mark.integration
 def test_a_finished_run_is_answered_from_its_summary_at_once(tmp_path):
     run_dir = recorded_run(tmp_path / "run", losses=(0.125, 0.250))
     proc, took = status(str(run_dir))
@@ -34,6 +35,7 @@ def test_a_finished_run_is_answered_from_its_summary_at_once(tmp_path):
     assert "(did not finish)" in proc.stdout
 
 
+@pytest.mark.integration
 def test_a_missing_run_is_answered_at_once(tmp_path):
     proc, took = status(str(tmp_path / "nothing"))
     assert proc.returncode == 1 and took < PROMPT_S and "holds no run" in proc.stdout
@@ -49,6 +51,7 @@ def stopped_run(tmp_path):
     return run_dir
 
 
+@pytest.mark.integration
 def test_a_run_that_stopped_without_a_summary_is_answered_within_seconds(tmp_path):
     proc, took = status(str(stopped_run(tmp_path)), "--window", "0.5")
     assert took < PROMPT_S and "not running" in proc.stdout, proc.stdout + proc.stderr
@@ -56,6 +59,7 @@ def test_a_run_that_stopped_without_a_summary_is_answered_within_seconds(tmp_pat
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.integration
 def test_ctrl_c_and_sigterm_end_it_at_once(tmp_path, sig):
     run_dir = stopped_run(tmp_path)
     err = tmp_path / "status.err"

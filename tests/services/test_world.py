@@ -62,6 +62,7 @@ def test_batched_and_per_robot_rays_agree(room_sim):
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
+@pytest.mark.integration
 def test_export_writes_stl_png_npz_and_a_ros_map(tmp_path):
     out = tmp_path / "export"
     proc = subprocess.run([*SWARMMAP, "world", "--preset", "smoke", "--export",
@@ -85,6 +86,7 @@ def test_export_writes_stl_png_npz_and_a_ros_map(tmp_path):
     assert back.unknown[0].all() and back.unknown[-1].all(), "the margin around the building is unknown"
 
 
+@pytest.mark.integration
 def test_bad_floorplan_stops_the_world_with_its_name(tmp_path):
     bad = tmp_path / "plan.svg"
     bad.write_text("not xml at all <")

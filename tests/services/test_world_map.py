@@ -34,6 +34,7 @@ def asked(zenoh_pair, run_id, reply) -> WorldMap | None:
         return learner.world(15.0)
 
 
+@pytest.mark.integration
 def test_a_receiver_draws_the_worlds_validation_set_from_a_recipe(zenoh_pair, run_id, world):
     cfg, grid, points, labels = world
     reply = map_replies(cfg.model_copy(update={"run_id": run_id}), grid, None)
@@ -44,6 +45,7 @@ def test_a_receiver_draws_the_worlds_validation_set_from_a_recipe(zenoh_pair, ru
     np.testing.assert_array_equal(got.val_labels.numpy(), labels)
 
 
+@pytest.mark.integration
 def test_a_draw_unlike_the_worlds_asks_for_the_points(zenoh_pair, run_id, world, caplog):
     cfg, grid, points, labels = world
     cfg = cfg.model_copy(update={"run_id": run_id})
@@ -75,6 +77,7 @@ def test_a_world_map_carries_one_validation_set():
         ValidationRecipe.model_validate(recipe.model_dump() | {"scans": 100_000, "beams": 100_000})
 
 
+@pytest.mark.integration
 def test_a_recipe_that_cannot_be_drawn_asks_for_the_points(zenoh_pair, run_id, world, caplog):
     cfg, grid, points, labels = world
     cfg = cfg.model_copy(update={"run_id": run_id})

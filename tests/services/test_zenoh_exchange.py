@@ -9,6 +9,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 
 from swarmmap.shared.bus import Bus
 from swarmmap.shared.protocol import Keys, ProtocolError, State, Tensor, encode
@@ -22,6 +23,7 @@ def three_params(msg: State) -> None:
         raise ProtocolError("shape", f"expected 3 parameters, got {msg.params.shape}")
 
 
+@pytest.mark.integration
 def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
     a_settings, b_settings = zenoh_pair
     keys = Keys("swarmmap", run_id)
@@ -48,6 +50,7 @@ def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
         assert a.sent.bytes_where(lambda k: k.endswith("/state")) > 0
 
 
+@pytest.mark.integration
 def test_algorithm1_between_two_processes_matches_reference(zenoh_pair, run_id, tmp_path):
     rounds = 8
     procs = []

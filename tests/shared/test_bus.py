@@ -15,6 +15,7 @@ from swarmmap.shared.protocol import Keys
     (dict(config_file="/nonexistent/zenoh.json5", insecure=True), "No such file"),
     (dict(listen=["tcp/203.0.113.9:7447"], multicast_scouting=False, insecure=True), "203.0.113.9"),
 ])
+@pytest.mark.integration
 def test_bad_zenoh_settings_raise_config_error(tmp_path, settings, words):
     with pytest.raises(ConfigError) as info:
         Bus.open(ZenohSettings(**settings), Keys("swarmmap", "r"), "test")

@@ -93,6 +93,7 @@ def test_dumped_config_loads_back(tmp_path):
     assert load(["learner", "--config", str(f)]) == cfg
 
 
+@pytest.mark.integration
 def test_cli_exits_2_with_message(capsys):
     from swarmmap.services.cli import main
 

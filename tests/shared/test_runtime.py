@@ -19,6 +19,7 @@ print("stopped", flush=True)
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.integration
 def test_many_sigterms_at_once_stop_a_service_and_never_hang_it():
     """Two SIGTERMs at once (its parent dying and its launcher stopping it, a double Ctrl-C) once
     deadlocked a service for good: the handler set the event while the main thread held its lock.

@@ -120,6 +120,7 @@ def test_runs_sharing_a_folder_keep_apart(tmp_path):
     assert ca_a != ca_b, "two runs in one folder share a CA"
 
 
+@pytest.mark.integration
 def test_a_member_publishes_only_on_its_own_keys(run):
     keys, folder, client = run
     got: list[tuple[str, int]] = []
@@ -150,6 +151,7 @@ READS = [  # (reader, key it must not receive and its publisher, what it would l
 
 
 @pytest.mark.parametrize("who, key, publisher, what, allowed, canary_from", READS, ids=[f"{r[0]}:{r[1]}" for r in READS])
+@pytest.mark.integration
 def test_a_member_reads_only_what_its_service_needs(run, who, key, publisher, what, allowed, canary_from):
     keys, folder, client = run
     got: list[str] = []
@@ -174,6 +176,7 @@ OWN_KEY = {"learner-1": "learners/1/metrics", "lidar-0": "robots/0/samples", "ob
 
 
 @pytest.mark.parametrize("who, key, forged", HOSTILE_PUTS, ids=[f"{w}:{k}" for w, k, _ in HOSTILE_PUTS])
+@pytest.mark.integration
 def test_a_member_cannot_forge_what_is_not_its_own(run, who, key, forged):
     keys, folder, client = run
     got: list[str] = []
@@ -190,6 +193,7 @@ def test_a_member_cannot_forge_what_is_not_its_own(run, who, key, forged):
     assert key not in got, f"{who} could forge {forged} on {key}"
 
 
+@pytest.mark.integration
 def test_only_the_world_answers_the_map_query(run):
     keys, folder, client = run
     with Bus.open(client, keys, "learner", 1) as rogue, Bus.open(client, keys, "world", 0) as world, \
@@ -203,6 +207,7 @@ def test_only_the_world_answers_the_map_query(run):
     assert set(answers) == {b"the map"}, answers
 
 
+@pytest.mark.integration
 def test_strangers_and_other_runs_cannot_connect(run, tmp_path):
     keys, folder, client = run
     client = client.model_copy(update={"connect_timeout_s": 2})  # each is refused at once; Zenoh retries until then
@@ -213,6 +218,7 @@ def test_strangers_and_other_runs_cannot_connect(run, tmp_path):
         Bus.open(client, Keys("swarmmap", "another-run"), "learner", 1)
 
 
+@pytest.mark.integration
 def test_a_certificate_of_the_same_ca_for_another_run_gets_nothing(tmp_path, run_id):
     """Were one CA to sign for two runs, a member of the other run still could neither publish
     nor read here: the policy knows each member as ``<identity>@<run>``."""
@@ -239,6 +245,7 @@ def test_a_certificate_of_the_same_ca_for_another_run_gets_nothing(tmp_path, run
     assert b"forged" not in seen and stolen == [], f"another run's certificate published or read: {stolen}"
 
 
+@pytest.mark.integration
 def test_a_client_checks_the_routers_name(tmp_path, run_id):
     """A member's credentials cannot serve as the router: clients trust only the router's certificate."""
     keys = Keys("swarmmap", run_id)
@@ -275,6 +282,7 @@ def port_is_free(port: int) -> bool:
             return False
 
 
+@pytest.mark.integration
 def test_plain_tcp_and_udp_clients_cannot_open_a_session_with_a_router_started_without_listen(tmp_path, run_id):
     if not wait_until(lambda: port_is_free(7447), 30, 0.5):
         pytest.skip("port 7447 (Zenoh's default, which this test is about) is taken on this machine")

@@ -30,6 +30,7 @@ def holders(directory, n, home, rounds, hold_s) -> subprocess.Popen:
                             stdout=subprocess.PIPE, text=True)
 
 
+@pytest.mark.integration
 def test_no_more_processes_hold_a_slot_than_there_are_slots(tmp_path):
     """Six processes, two slots, each taking one three times: at no instant more than two inside,
     and every process gets all its turns (waiters are not starved)."""
@@ -49,6 +50,7 @@ def test_no_more_processes_hold_a_slot_than_there_are_slots(tmp_path):
     assert most == 2, f"{most} processes held a slot at once (2 slots)"
 
 
+@pytest.mark.integration
 def test_a_killed_holder_frees_its_slot(tmp_path):
     """A learner killed while training never keeps its slot: the kernel drops its lock."""
     holder = holders(tmp_path, 1, 0, 1, 600)

@@ -22,6 +22,7 @@ def experiment(*args: str) -> subprocess.CompletedProcess:
     (("regularization", "--shapes", "2,sixty,1"), "--shapes: a model shape is a list of layer widths"),
     (("consensus", "--exchange-every", "7", "--rounds", "10"), "rounds (10) must be a multiple of exchange_every (7)"),
 ])
+@pytest.mark.integration
 def test_a_refused_argument_is_named_and_nothing_is_created(tmp_path, args, said):
     out = tmp_path / "out"
     proc = experiment(*args, "--preset", "smoke", "--out", str(out))
@@ -31,6 +32,7 @@ def test_a_refused_argument_is_named_and_nothing_is_created(tmp_path, args, said
     assert not out.exists(), "a refused experiment left its --out folder"
 
 
+@pytest.mark.integration
 def test_an_out_folder_that_cannot_be_made_is_refused(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
@@ -38,6 +40,7 @@ def test_an_out_folder_that_cannot_be_made_is_refused(tmp_path):
     assert proc.returncode == 2 and "--out: " in proc.stderr and "which is a file" in proc.stderr and "Traceback" not in proc.stderr
 
 
+@pytest.mark.integration
 def test_scoring_a_path_that_is_no_run_says_so(tmp_path):
     f = tmp_path / "file.txt"
     f.write_text("not a run")

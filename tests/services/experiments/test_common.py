@@ -3,6 +3,7 @@ was added (at its default, the new setting changes nothing it ran with)."""
 
 from __future__ import annotations
 
+import pytest
 import yaml
 
 from swarmmap.services.experiments.common import same_settings
@@ -18,6 +19,7 @@ def write_run(run_dir, cfg, drop=()):
     (run_dir / "config.yaml").write_text(yaml.safe_dump(doc))
 
 
+@pytest.mark.integration
 def test_a_run_made_before_a_setting_existed_is_the_same_run_at_its_default(tmp_path):
     cfg = resolve({"preset": "smoke", "seed": 3})
     write_run(tmp_path / "old", cfg, drop=("exchange_every_s", "lowrank_rank"))

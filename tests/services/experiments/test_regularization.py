@@ -18,6 +18,7 @@ def test_shapes_parse_as_typed_and_nonsense_is_refused_naming_the_flag():
             parse_shape(bad)
 
 
+@pytest.mark.integration
 def test_the_grid_is_every_shape_ratio_and_weight_with_the_configs_where_not_given():
     base = resolve({"learner": {"model": "bnn", "w_rho": 2.0, "w_mu": 1.0, "kl_weight": 0.01}}, preset="smoke")
     args = argparse.Namespace(shapes=None, w_rho=None, kl_weights=None)

@@ -39,6 +39,7 @@ def test_a_checkpoint_or_training_points_of_other_settings_are_refused(tmp_path)
         other.points(other.resumable())
 
 
+@pytest.mark.integration
 def test_a_checkpoint_that_cannot_be_written_stops_the_learner_naming_the_disk(tmpfs):
     full = tmpfs("64k")
     ck = Checkpoints(full / "checkpoints", 0, "r", settings_fingerprint(resolve(preset="smoke", environ={})), online=True)
