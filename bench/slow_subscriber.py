@@ -45,7 +45,8 @@ from swarmmap.shared.bus import ROUTER_CLOSES_STUCK_S, Bus
 from swarmmap.shared.config import ZenohSettings
 from swarmmap.shared.protocol import Keys, State, encode_state
 from swarmmap.shared.runtime import shutdown_event
-from swarmmap.shared.secrets import access_policy, identities, router_names, write_credentials
+from swarmmap.shared.secrets import access_policy, router_names, write_credentials
+from swarmmap.shared.services import identities
 
 RUN = "bench-slow"
 VALUES = 527_361  # the paper's BNN: mu and rho of 263,680 weights, and the round

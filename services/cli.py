@@ -8,6 +8,7 @@ Every subcommand's ``--help`` lists its options; each option is a field of the r
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import sys
@@ -51,7 +52,9 @@ UP_EXAMPLES = """examples:
 Then look at what it left: rerun RUN_DIR/recording.rrd, swarmmap experiment score RUN_DIR.
 """
 
-DESCRIPTIONS = {
+# The commands that are not one of the run's services; each service's comes from its kind
+# (swarmmap.shared.services: the registry), placed where SERVICES_AT says.
+COMMANDS = {
     "up": "Run the whole system locally: router, recorder, observer, world, a lidar streamer and a learner per robot.",
     "prepare": "Write a run's config.yaml (what up would run) for services started one by one, e.g. by SLURM.",
     "experiment": "The paper's experiments (kl-sweep, regularization, consensus) and the scores of a run.",
@@ -60,22 +63,42 @@ DESCRIPTIONS = {
     "logs": "List a run's service logs, or print one service's log.",
     "compare": "Plot runs' mean val_bce against round and against wall time into one PNG.",
     "secrets": "Write a run's credentials: a CA, a certificate per service and the router's access policy.",
-    "router": "A Zenoh router for discovery across hosts and containers.",
-    "recorder": "The recorder: writes the run directory (config, metrics, summary, ground truth) and ends the run.",
-    "world": "The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
-    "lidar": "A LiDAR streamer: one robot's scans -> labelled training points.",
-    "learner": "A learner: DiNNO consensus training of one robot's occupancy network (Algorithm 1).",
-    "observer": "The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
     "net": "Change the network of a run started with up --netns: cut the team in two, heal it, set link rates and "
            "loss (root).",
-    "plugins": "List the installed parts (consensus rules, dataset readers), built-in and from other packages, each "
-               "checked.",
+    "plugins": "List the installed parts (consensus rules, dataset readers, services), built-in and from other packages, "
+               "each checked.",
+    "services": "List the run's kinds of service (the registry): one per run or per robot, config section, command.",
     "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
             "(nav_msgs/OccupancyGrid).",
 }
-SECTIONS = {"up": "up", "prepare": "up", "ros2": "ros2", "secrets": None, "router": "router", "recorder": "recorder", "world": "world",
-            "lidar": "lidar", "learner": "learner", "observer": "observer", "status": None}
-TOOLS = ("runs", "logs", "compare", "plugins")  # read run directories or the installed packages only: no config, no Zenoh
+SERVICES_AT = "secrets"  # the services' own commands follow this one in swarmmap --help
+
+
+def descriptions() -> dict[str, str]:
+    """Every subcommand and its one-line description: the commands above with a command per
+    kind of service that has one (the registry's, swarmmap's own and other packages')."""
+    from swarmmap.shared.services import kinds
+
+    services = {name: k.summary for name, k in kinds().items() if k.runner}
+    out: dict[str, str] = {}
+    for name, text in COMMANDS.items():
+        out[name] = text
+        if name == SERVICES_AT:
+            out |= services
+    return out
+
+
+def section_of(command: str) -> str | None:
+    """The config section whose flags a command takes (None: the common ones only)."""
+    if command in ("up", "prepare", "ros2"):
+        return {"ros2": "ros2"}.get(command, "up")
+    from swarmmap.shared.services import kinds
+
+    k = kinds().get(command)
+    return k.section if k is not None and k.runner else None
+
+
+TOOLS = ("runs", "logs", "compare", "plugins", "services")  # read run directories or what is installed: no config, no Zenoh
 # What a user sets most, first in up's and prepare's help: (config path, flag, help where the field's own does not fit).
 EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learner.rounds", "--rounds", None),
             ("learner.model", "--model", None),
@@ -136,6 +159,9 @@ def add_tool_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("runs", nargs="+", metavar="RUN_DIR[=LABEL]", help="run directories, each optionally with its label")
         p.add_argument("--out", type=Path, default=Path("compare.png"), help="the PNG to write [default: compare.png]")
         p.add_argument("--target", type=float, default=None, help="draw this val_bce as a line and say when each run reached it")
+    elif name == "services":
+        p.add_argument("--slurm", action="store_true", help="one line per kind the SLURM job starts beside its routers: "
+                                                            "NAME one|per-robot compute|light [ends-run] (deploy/slurm/team.sbatch)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -144,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"swarmmap {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, description in DESCRIPTIONS.items():
+    for name, description in descriptions().items():
         if name == "experiment":
             from swarmmap.services.experiments import add_parser
 
@@ -164,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
 
             add_net_arguments(p)
         if name not in ("up", "prepare", "ros2", "net", *TOOLS):
-            add_common_arguments(p, SECTIONS[name])
+            add_common_arguments(p, section_of(name))
     return parser
 
 
@@ -176,22 +202,13 @@ def _runner(command: str) -> Callable:
         from swarmmap.services.up.launcher import run_prepare as run
     elif command == "secrets":
         from swarmmap.services.up.launcher import run_secrets as run
-    elif command == "router":
-        from swarmmap.services.router import run
-    elif command == "recorder":
-        from swarmmap.services.recorder import run
-    elif command == "world":
-        from swarmmap.services.world import run
-    elif command == "lidar":
-        from swarmmap.services.lidar import run
-    elif command == "learner":
-        from swarmmap.services.learner.service import run
-    elif command == "observer":
-        from swarmmap.services.observer import run
     elif command == "ros2":
         from swarmmap.services.ros2 import run
-    else:
-        raise ValueError(command)
+    else:  # one of the run's services: the main loop its kind names
+        from swarmmap.shared.services import kind
+
+        module, _, function = kind(command).runner.partition(":")
+        run = getattr(importlib.import_module(module), function)
     return run
 
 
@@ -206,10 +223,27 @@ def list_plugins(args: argparse.Namespace) -> int:
     return 2 if refused else 0
 
 
+def list_services(args: argparse.Namespace) -> int:
+    """``swarmmap services``: the run's kinds of service; ``--slurm``: the lines team.sbatch starts its steps from."""
+    from swarmmap.shared.services import kinds, slurm_lines
+
+    if args.slurm:
+        print("\n".join(slurm_lines()))
+        return 0
+    for name, k in kinds().items():
+        started = f"up starts it {'per robot' if k.per_robot else 'once'}" if k.up_order is not None else \
+            "a tool's session" if k.runner is None else "started on its own"
+        print(f"{name:<10} {'per robot' if k.per_robot else 'one a run':<10} section {str(k.section):<9} {started:<24} "
+              f"{k.runner or '-'}")
+    return 0
+
+
 def run_tool(args: argparse.Namespace) -> int:
     """``runs``, ``logs``, ``compare``: they read run directories and print what they found; ``plugins``."""
     if args.command == "plugins":
         return list_plugins(args)
+    if args.command == "services":
+        return list_services(args)
     from swarmmap.services import runs
 
     try:

@@ -37,8 +37,9 @@ from swarmmap.shared.protocol import (
     decode,
     encode,
 )
-from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, identity, own_folder
+from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, own_folder
 from swarmmap.shared.sensing import draw_validation
+from swarmmap.shared.services import identity
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)

@@ -1,4 +1,4 @@
-"""Parts found by name through Python entry points: consensus rules and dataset readers.
+"""Parts found by name through Python entry points: consensus rules, dataset readers and services.
 
 swarmmap's own parts are registered the same way as anyone's, in its ``pyproject.toml``; a
 package of one's own adds a part without touching swarmmap by declaring an entry point in the
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import importlib
 import importlib.metadata as metadata
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -72,19 +73,25 @@ class DatasetReader:
 
 @dataclass(frozen=True)
 class Group:
-    """A kind of part: its entry-point group, the config field that names one, and its spec type."""
+    """A kind of part: its entry-point group, what names one, and its spec type (``module:Class``,
+    imported when a part is checked: a spec type may live in a module that uses this one)."""
 
     name: str
     field: str
-    spec: type
+    spec: str
 
     @property
     def entry_points(self) -> str:
         return f"swarmmap.{self.name}"
 
+    def spec_type(self) -> type:
+        module, _, attr = self.spec.partition(":")
+        return getattr(importlib.import_module(module), attr)
 
-GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", ConsensusPlugin),
-                              Group("datasets", "world.dataset", DatasetReader))}
+
+GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", "swarmmap.shared.plugins:ConsensusPlugin"),
+                              Group("datasets", "world.dataset", "swarmmap.shared.plugins:DatasetReader"),
+                              Group("services", "service", "swarmmap.shared.services:ServiceKind"))}
 
 
 @dataclass(frozen=True)
@@ -166,7 +173,7 @@ def load(group: str, name: str) -> Any:
         obj = metadata.EntryPoint(plugin.name, plugin.target, GROUPS[group].entry_points).load()
     except Exception as exc:  # whatever a foreign module raises on import is that module's fault
         raise PluginError(f"{plugin.describe()} failed to import: {type(exc).__name__}: {exc}") from None
-    spec = GROUPS[group].spec
+    spec = GROUPS[group].spec_type()
     if not isinstance(obj, spec):
         raise PluginError(f"{plugin.describe()} breaks its contract: {plugin.target} is a {type(obj).__name__}, "
                           f"not a swarmmap.shared.plugins.{spec.__name__}")
@@ -209,7 +216,7 @@ def report() -> tuple[list[str], int]:
                 if plugin.name in many:
                     find(group.name, plugin.name)
                 spec = load(group.name, plugin.name)
-                what = spec.summary if isinstance(spec, ConsensusPlugin) else spec.describe
+                what = spec.describe if isinstance(spec, DatasetReader) else spec.summary
                 if isinstance(spec, ConsensusPlugin) and spec.models:
                     what += f" (model {' or '.join(spec.models)})"
             except PluginError as exc:

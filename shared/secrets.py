@@ -45,11 +45,10 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from swarmmap.shared.atomic import atomic_write_bytes
 from swarmmap.shared.protocol import Keys
+from swarmmap.shared.services import Access, identities, policy_keys
 
 log = logging.getLogger(__name__)
 
-SINGLETONS = ("router", "recorder", "observer", "world", "up", "status")
-PER_ROBOT = ("lidar", "learner")
 CA_FILE, CERT_FILE, KEY_FILE = "ca.pem", "cert.pem", "key.pem"
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
@@ -58,21 +57,9 @@ class SecretsError(Exception):
     """Credentials that cannot be written, found or trusted; the message names the folder and the fix."""
 
 
-def identity(service: str, ident: int | str) -> str:
-    """The identity of a service: ``learner-3``, ``world-0``."""
-    return f"{service}-{ident}"
-
-
 def cert_name(who: str, run: str) -> str:
     """The common name of ``who``'s certificate in run ``run``: ``learner-3@run-20250101-120000``."""
     return f"{who}@{run}"
-
-
-def identities(robots: int, host_routers: bool = False) -> list[str]:
-    """Every identity of a run with ``robots`` robots; with ``host_routers`` also each robot
-    host's router, ``router-r<i>`` (a router per host: shared/mesh.py)."""
-    hosts = [identity("router", f"r{i}") for i in range(robots)] if host_routers else []
-    return [identity(s, 0) for s in SINGLETONS] + [identity(s, i) for s in PER_ROBOT for i in range(robots)] + hosts
 
 
 def own_folder(secrets: Path, who: str, run: str) -> Path:
@@ -377,46 +364,12 @@ DECLARATIONS = ["declare_subscriber", "declare_queryable", "liveliness_token", "
                 "liveliness_query"]
 
 
-def reads(keys: Keys, robots: int, neighbours: dict[int, set[int]] | None = None,
-          inproc_learner: bool = False, host_routers: bool = False) -> dict[str, list[str]]:
-    """The keys each identity may subscribe to, query and receive: what its service reads, no
-    more. Every member sees the liveliness tokens and ``run/done``; learners their own robot's
-    samples, their neighbours' State and RoundComplete (every learner's when ``neighbours`` is
-    None: a graph that changes as the robots move) and the world's map; lidar streamers their
-    own robot's scans; the observer the scans, metrics and States; the recorder and ``up`` the
-    scans and metrics; ``status`` the metrics, RoundCompletes and scans (never a State)."""
-    common = [keys.alive(), keys.run_done()]
-    out = {name: list(common) for name in identities(robots, host_routers)}
-    out["recorder-0"] += [keys.metrics("*"), keys.scan("*"), keys.world_map()]
-    out["observer-0"] += [keys.metrics("*"), keys.scan("*"), keys.state("*"), keys.world_map()]
-    out["up-0"] += [keys.metrics("*"), keys.scan("*")]
-    out["status-0"] += [keys.metrics("*"), keys.round_complete("*"), keys.scan("*")]
-    for i in range(robots):
-        out[identity("lidar", i)].append(keys.scan(i))
-        learner = identity("learner", 0 if inproc_learner else i)
-        peers = ["*"] if neighbours is None or inproc_learner else sorted(neighbours.get(i, set()))
-        out[learner] += [keys.samples(i), keys.world_map(), *(k for j in peers for k in keys.exchange(j))]
-    return {name: sorted(set(keys_)) for name, keys_ in out.items()}
-
-
-def speaks(keys: Keys, robots: int, inproc_learner: bool = False, host_routers: bool = False) -> dict[str, list[str]]:
-    """The keys each identity may publish on, declare tokens and answer queries on: its own."""
-    out = {name: [keys.alive(*name.rsplit("-", 1))] for name in identities(robots, host_routers)}
-    for i in range(robots):
-        learner = identity("learner", 0 if inproc_learner else i)
-        out[learner] += [keys.learner(i), keys.alive("learner", i), keys.alive("exchange", i)]
-        out[identity("lidar", i)] += [keys.samples(i)]
-    out["world-0"] += [keys.scan("*"), keys.world_map()]
-    out["recorder-0"] += [keys.run_done()]
-    return {name: sorted(set(keys_)) for name, keys_ in out.items()}
-
-
 def access_policy(keys: Keys, robots: int, inproc_learner: bool = False,
                   neighbours: dict[int, set[int]] | None = None, host_routers: bool = False) -> dict:
     """The router's access-control config: deny by default; each identity (by its certificate
     name, bound to this run) may publish, declare tokens and answer queries only on its own keys
-    (:func:`speaks`), and receive data and replies only on what its service reads
-    (:func:`reads`), whatever it subscribes to. Declarations pass to every member, so that
+    (its kind's declaration, :mod:`swarmmap.shared.services`), and receive data and replies only on
+    what its service reads, whatever it subscribes to. Declarations pass to every member, so that
     publishers learn of their subscribers. With ``host_routers`` (a router per host), the
     other routers of the run relay everything under the run to and from this one: each router
     holds its own clients to these rules, so a member's messages are checked where it joins."""
@@ -428,8 +381,7 @@ def access_policy(keys: Keys, robots: int, inproc_learner: bool = False,
     ]
     subjects: list[dict] = []
     policies: list[dict] = []
-    own = speaks(keys, robots, inproc_learner, host_routers)
-    readable = reads(keys, robots, neighbours, inproc_learner, host_routers)
+    own, readable = policy_keys(keys, Access(robots, neighbours, inproc_learner, host_routers))
     if host_routers:
         rules.append({"id": "relays", "permission": "allow", "flows": ["ingress", "egress"], "messages": ALL_MESSAGES,
                       "key_exprs": [keys.everything()]})

@@ -26,7 +26,8 @@ from swarmmap.shared.atomic import atomic_write_text
 from swarmmap.shared.claims import CLAIMS_ENV, forget_claims
 from swarmmap.shared.config import ConfigError, RunConfig, resolve
 from swarmmap.shared.runtime import setup_logging, shutdown_event
-from swarmmap.shared.secrets import Signer, identities, router_names
+from swarmmap.shared.secrets import Signer, router_names
+from swarmmap.shared.services import identities
 
 SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 

@@ -64,7 +64,8 @@ from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan
 from swarmmap.shared.recording import RecordingError, read_recording
 from swarmmap.shared.rundir import config_doc, local_time, read_summary, run_state
 from swarmmap.shared.runtime import die_with_parent
-from swarmmap.shared.secrets import SecretsError, identities, router_names, write_credentials
+from swarmmap.shared.secrets import SecretsError, router_names, write_credentials
+from swarmmap.shared.services import identities, kinds, started_by_up
 from swarmmap.shared.slots import slots_dir
 
 log = logging.getLogger("up")
@@ -73,7 +74,6 @@ log = logging.getLogger("up")
 # A service that exits with status 2 refused its settings: that would only repeat, so it ends the run at once.
 FAILURE_GRACE_S = 30.0
 REFUSED = 2
-RESTARTABLE = ("learner", "lidar", "world")  # crashed ones are started again, up.restarts times each
 
 
 def free_port() -> int:
@@ -306,8 +306,8 @@ class Launcher:
     def grace(self, child: Child) -> float:
         """How long ``child`` gets to finish once the run is over: the observer maps the final
         States, a learner writes its model and maps; the others only close."""
-        up = self.cfg.up
-        return {"observer": up.observer_grace_s, "learner": up.learner_grace_s}.get(child.service, up.stop_grace_s)
+        k = kinds().get(child.service)
+        return getattr(self.cfg.up, k.grace if k is not None and k.grace else "stop_grace_s")
 
     def let_leave(self, alive: Callable[[], set[str]]) -> None:
         """Wait until every service but the router has exited by itself, at most its grace time. A
@@ -396,32 +396,27 @@ class Launcher:
         log.info("run directory: %s", self.run_dir)
 
     def start_services(self, bus: Bus, t0: float) -> Child:
-        """Start the recorder, the observer, the learners, the lidar streamers and the world, and
-        wait until all but the world are alive (the world builds its plan meanwhile and drives
-        once they are: ``world.wait_for``); returns the recorder."""
-        cfg = self.cfg
-        learners = 1 if cfg.learner.transport == "inproc" else cfg.robots
-        names = ["router", "recorder"] + (["observer"] if cfg.up.observer else []) + [
-            f"{learners} learner(s)", f"{cfg.robots} lidar streamer(s)", "world"]
-        log.info("starting %d services: %s", 3 + int(cfg.up.observer) + learners + cfg.robots, ", ".join(names))
+        """Start the run's services in the registry's order (swarmmap.shared.services: the recorder,
+        the observer, the learners, the lidar streamers, the world, then any other kind up starts)
+        and wait until those that must be are alive (the world builds its plan meanwhile and drives
+        once they are: ``world.wait_for``); returns the service that ends the run (the recorder)."""
+        plan = [(name, k, k.ids(self.cfg)) for name, k in started_by_up()]
+        names = ["router"] + [f"{len(ids)} {name}(s)" if k.per_robot else name for name, k, ids in plan if ids]
+        log.info("starting %d services: %s", 1 + sum(len(ids) for _, _, ids in plan), ", ".join(names))
         self.wait_alive(bus, "router", {r.ident for r in self.routers.values()} or {"0"})
-        recorder = self.spawn("recorder", 0)  # first, so that it records the run from the start
-        if cfg.up.observer:
-            self.spawn("observer", 0)
-        ids = {str(i) for i in range(cfg.robots)}
-        if cfg.learner.transport == "inproc":  # one process serves every robot (DiNNO's setting)
-            self.spawn("learner", 0)
-        for i in range(cfg.robots):
-            if cfg.learner.transport == "zenoh":
-                self.spawn("learner", i, "--robot", str(i), robot=i)
-            self.spawn("lidar", i, "--robot", str(i), robot=i)
-        self.spawn("world", 0)
-        self.wait_alive(bus, "recorder", {"0"})
-        self.wait_alive(bus, "learner", ids)
-        self.wait_alive(bus, "lidar", ids)
+        ends = None
+        for name, k, ids in plan:  # the recorder first, so that it records the run from the start
+            for i in ids:  # None: one process serves every robot (an in-process learner), on the base host
+                child = self.spawn(name, 0) if i is None or not k.per_robot else self.spawn(name, i, "--robot", str(i), robot=i)
+                if k.ends_run:
+                    ends = child
+        robots = {str(i) for i in range(self.cfg.robots)}
+        for name, k, ids in plan:
+            if k.wait_alive and ids:
+                self.wait_alive(bus, name, robots if k.per_robot else {"0"})
         log.info("every service but the world is alive after %.1f s; the world builds the plan and drives the robots",
                  time.monotonic() - t0)
-        return recorder
+        return ends
 
     def start_routers(self) -> None:
         """The run's router, or with a router per host each host's, linked as ``up.router_links`` says."""
@@ -437,7 +432,8 @@ class Launcher:
     def restartable(self, child: Child) -> bool:
         """A crashed learner, lidar or world is started again; with a router per host, a router
         too (its host's services reconnect to it and rejoin)."""
-        return child.service in RESTARTABLE or (self.per_host and child.service == "router")
+        k = kinds().get(child.service)
+        return (k is not None and k.restart) or (self.per_host and child.service == "router")
 
     def show_progress(self, force: bool = False) -> None:
         """Log each phase once as it begins, and draw the progress line of the current one

@@ -1,5 +1,6 @@
 """Plug-ins from a package outside swarmmap, installed with pip into a fresh virtual environment:
-a consensus rule and a dataset reader chosen by name in a whole run over Zenoh, listed by
+a consensus rule and a dataset reader chosen by name in a whole run over Zenoh, a service that
+gets its identity, access rules, command, place in ``up`` and in the SLURM job, all listed by
 ``swarmmap plugins``; broken ones refused by name in seconds. No file of swarmmap changes."""
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ def test_plugins_lists_each_part_with_its_package_and_refuses_the_broken_ones(ve
     rows = {line.split()[0]: line for line in proc.stdout.splitlines() if line.startswith("  ")}
     assert "swarmmap-example-plugins 1.2.0" in rows["damped"] and "every pull scaled" in rows["damped"]
     assert "swarmmap-example-plugins 1.2.0" in rows["scans-csv"] and "*.scans.csv" in rows["scans-csv"]
+    assert "swarmmap-example-plugins 1.2.0" in rows["heartbeat"] and "hears every learner's Metrics" in rows["heartbeat"]
     assert rows["sigma"].split()[1:3] == ["swarmmap", "0.1.0"]
     assert "REFUSED" in rows["crashes"] and "failed to import: ImportError" in rows["crashes"]
     assert "breaks its contract" in rows["not-a-rule"] and "swarmmap-broken-plugins 0.0.1" in rows["not-a-rule"]
@@ -107,3 +109,27 @@ def test_a_smoke_run_on_a_plan_trains_with_the_plugins_rule_over_zenoh(venv, tmp
     cfg = (run / "config.yaml").read_text()
     assert "transport: zenoh" in cfg and "consensus: damped" in cfg
     assert "consensus damped (from swarmmap-example-plugins 1.2.0)" in (run / "logs" / "learner-1.log").read_text()
+    # up started the other package's service with the run's own: its certificate, its session, what it heard
+    assert (run / "secrets" / f"heartbeat-0@{summary['run_id']}" / "cert.pem").exists()
+    beat = (run / "logs" / "heartbeat-0.log").read_text()
+    assert "heard the metrics of robots [0, 1, 2], last rounds [20, 20, 20]" in beat
+
+
+def test_a_service_from_another_package_gets_its_identity_rules_command_and_place(venv):
+    """Registered by one entry point: the identity and access rules come from its declaration,
+    `swarmmap heartbeat` is a command, and the SLURM job (which starts a step per line of
+    `swarmmap services --slurm`) and `up` (below) start it."""
+    code = ("from swarmmap.shared.protocol import Keys; from swarmmap.shared.secrets import access_policy; "
+            "from swarmmap.shared.services import identities; import json; "
+            "p = access_policy(Keys('swarmmap', 'r1'), 2); "
+            "print(json.dumps([identities(2), [r for r in p['rules'] if r['id'].startswith('heartbeat-0')]]))")
+    proc = subprocess.run([str(venv), "-c", code], capture_output=True, text=True, check=True, env=clean_env())
+    names, rules = json.loads(proc.stdout)
+    assert "heartbeat-0" in names and "heartbeat-1" not in names  # one a run
+    receives = next(r for r in rules if r["id"] == "heartbeat-0-receives")["key_exprs"]
+    assert "swarmmap/r1/learners/*/metrics" in receives and not any("state" in k or "scan" in k for k in receives)
+    speaks = next(r for r in rules if r["id"] == "heartbeat-0-speaks")["key_exprs"]
+    assert speaks == ["swarmmap/r1/alive/heartbeat/0"]
+    assert "heartbeat one light" in swarmmap(venv, "services", "--slurm", timeout=60).stdout.splitlines()
+    help_ = swarmmap(venv, "heartbeat", "--help", timeout=60)
+    assert help_.returncode == 0 and "hears every learner's Metrics" in help_.stdout

@@ -23,7 +23,8 @@ from swarmmap.shared.config import ConfigError, RunConfig
 from swarmmap.shared.models import param_count
 from swarmmap.shared.networks import build_network
 from swarmmap.shared.protocol import Keys, State, Tensor
-from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, identities, own_folder, router_names, write_credentials
+from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, own_folder, router_names, write_credentials
+from swarmmap.shared.services import identities
 from tests.conftest import SWARMMAP, clean_env, wait_until
 from tests.harness import final_losses
 

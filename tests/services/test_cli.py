@@ -10,7 +10,7 @@ from importlib import metadata
 
 import pytest
 
-from swarmmap.services.cli import DESCRIPTIONS, build_parser
+from swarmmap.services.cli import build_parser, descriptions
 from swarmmap.shared.config import DEFAULT_PRESET, config_from_args, resolve
 from tests.conftest import SWARMMAP, clean_env
 
@@ -67,7 +67,7 @@ def test_device_on_up_sets_the_learners_device():
 def test_no_help_text_holds_rst_markup_and_every_command_is_listed():
     parser = build_parser()
     top = parser.format_help()
-    for name in DESCRIPTIONS:
+    for name in descriptions():
         assert re.search(rf"^    {name}\b", top, re.MULTILINE), f"{name} is not listed in swarmmap --help"
     assert "consensus" in top and "examples:" in top and "examples:" in help_of("up")
     for name, sub in subparsers(parser).items():

@@ -22,13 +22,13 @@ from swarmmap.shared.secrets import (
     SecretsError,
     access_policy,
     cert_name,
-    identities,
     own_folder,
     pem_key,
     router_names,
     write_credentials,
     write_own,
 )
+from swarmmap.shared.services import identities
 from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.timeout(120)
