@@ -23,8 +23,8 @@ import yaml
 
 from swarmmap.services.learner.metrics import validation_bce
 from swarmmap.services.learner.node import lr_schedule, make_optimizer
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.networks import build_model
+from swarmmap.shared.learning.networks import build_model
+from swarmmap.shared.run.config import RunConfig
 
 
 def main(run_dir: Path) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.conftest
 
-from swarmmap.shared.rundir import run_state  # noqa: E402
+from swarmmap.shared.run.rundir import run_state  # noqa: E402
 from tests.conftest import SWARMMAP, clean_env  # noqa: E402
 
 

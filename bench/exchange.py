@@ -20,7 +20,7 @@ with ``--role echo`` afresh for each size, is learner 1; both use the learner's 
   Bus, codec, validation and transport.
 
 ``--secure``: the same two learners as a secure run has them, each a client of its run's
-router over mutual TLS with credentials of its own (``shared/secrets.py``), the router (a
+router over mutual TLS with credentials of its own (``shared/wire/secrets.py``), the router (a
 process of its own) enforcing the run's access policy; the raw path is two bare sessions with
 the same certificates through a second router with TLS and no access control. So both paths
 cross TLS and a router, and the difference is the project's layers and the policy.
@@ -51,12 +51,13 @@ import zenoh
 
 from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
-from swarmmap.shared.bus import Bus, zenoh_config
-from swarmmap.shared.config import ZenohSettings
-from swarmmap.shared.models import param_count
-from swarmmap.shared.networks import build_model
-from swarmmap.shared.protocol import Keys, State, StateFrame, decode, encode_state
-from swarmmap.shared.secrets import access_policy, write_credentials
+from swarmmap.shared.learning.models import param_count
+from swarmmap.shared.learning.networks import build_model
+from swarmmap.shared.run.config import ZenohSettings
+from swarmmap.shared.wire.bus import Bus, zenoh_config
+from swarmmap.shared.wire.codec import StateFrame, decode, encode_state
+from swarmmap.shared.wire.protocol import Keys, State
+from swarmmap.shared.wire.secrets import access_policy, write_credentials
 
 RUN = "bench-exchange"
 SIZES = {

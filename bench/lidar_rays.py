@@ -18,8 +18,9 @@ import time
 import numpy as np
 
 from swarmmap.services.world.simulation import Simulation, build_plan, robot_paths
-from swarmmap.shared.config import resolve
-from swarmmap.shared.protocol import Scan, Tensor, encode
+from swarmmap.shared.run.config import resolve
+from swarmmap.shared.wire.codec import encode
+from swarmmap.shared.wire.protocol import Scan, Tensor
 
 
 def main() -> None:

@@ -24,8 +24,8 @@ import time
 import numpy as np
 import torch
 
-from swarmmap.shared.bnn import BayesLinear, BayesNet, fast_bf16, predict_mean_std
-from swarmmap.shared.networks import build_model
+from swarmmap.shared.learning.bnn import BayesLinear, BayesNet, fast_bf16, predict_mean_std
+from swarmmap.shared.learning.networks import build_model
 
 PAPER_BNN = [2, 256, 256, 256, 256, 256, 1]
 DINNO_NET = [2, 256, 64, 64, 64, 1]

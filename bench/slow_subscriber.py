@@ -40,13 +40,14 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from swarmmap.shared import bus as bus_module
-from swarmmap.shared.bus import ROUTER_CLOSES_STUCK_S, Bus
-from swarmmap.shared.config import ZenohSettings
-from swarmmap.shared.protocol import Keys, State, encode_state
-from swarmmap.shared.runtime import shutdown_event
-from swarmmap.shared.secrets import access_policy, router_names, write_credentials
-from swarmmap.shared.services import identities
+from swarmmap.shared.run.config import ZenohSettings
+from swarmmap.shared.run.runtime import shutdown_event
+from swarmmap.shared.wire import bus as bus_module
+from swarmmap.shared.wire.bus import ROUTER_CLOSES_STUCK_S, Bus
+from swarmmap.shared.wire.codec import encode_state
+from swarmmap.shared.wire.protocol import Keys, State
+from swarmmap.shared.wire.secrets import access_policy, router_names, write_credentials
+from swarmmap.shared.wire.services import identities
 
 RUN = "bench-slow"
 VALUES = 527_361  # the paper's BNN: mu and rho of 263,680 weights, and the round

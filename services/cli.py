@@ -2,7 +2,7 @@
 experiments and the tools that look at runs.
 
 Every subcommand's ``--help`` lists its options; each option is a field of the run's config
-(see swarmmap.shared.config) and overrides the config file and the environment.
+(see swarmmap.shared.run.config) and overrides the config file and the environment.
 """
 
 from __future__ import annotations
@@ -16,19 +16,9 @@ from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
-from swarmmap.shared.config import (
-    DEFAULT_PRESET,
-    PRESETS,
-    ConfigError,
-    Ros2Settings,
-    RunConfig,
-    add_common_arguments,
-    add_field_argument,
-    add_model_arguments,
-    config_from_args,
-    resolve,
-)
-from swarmmap.shared.runtime import setup_logging, shutdown_event
+from swarmmap.shared.run.config import DEFAULT_PRESET, PRESETS, ConfigError, Ros2Settings, RunConfig, resolve
+from swarmmap.shared.run.flags import add_common_arguments, add_field_argument, add_model_arguments, config_from_args
+from swarmmap.shared.run.runtime import setup_logging, shutdown_event
 
 SUMMARY = ("swarmmap: decentralised multi-robot mapping with uncertainty (DiNNO and Bayesian networks) "
            "as services on Zenoh.")
@@ -53,7 +43,7 @@ Then look at what it left: rerun RUN_DIR/recording.rrd, swarmmap experiment scor
 """
 
 # The commands that are not one of the run's services; each service's comes from its kind
-# (swarmmap.shared.services: the registry), placed where SERVICES_AT says.
+# (swarmmap.shared.wire.services: the registry), placed where SERVICES_AT says.
 COMMANDS = {
     "up": "Run the whole system locally: router, recorder, observer, world, a lidar streamer and a learner per robot.",
     "prepare": "Write a run's config.yaml (what up would run) for services started one by one, e.g. by SLURM.",
@@ -77,7 +67,7 @@ SERVICES_AT = "secrets"  # the services' own commands follow this one in swarmma
 def descriptions() -> dict[str, str]:
     """Every subcommand and its one-line description: the commands above with a command per
     kind of service that has one (the registry's, swarmmap's own and other packages')."""
-    from swarmmap.shared.services import kinds
+    from swarmmap.shared.wire.services import kinds
 
     services = {name: k.summary for name, k in kinds().items() if k.runner}
     out: dict[str, str] = {}
@@ -92,7 +82,7 @@ def section_of(command: str) -> str | None:
     """The config section whose flags a command takes (None: the common ones only)."""
     if command in ("up", "prepare", "ros2"):
         return {"ros2": "ros2"}.get(command, "up")
-    from swarmmap.shared.services import kinds
+    from swarmmap.shared.wire.services import kinds
 
     k = kinds().get(command)
     return k.section if k is not None and k.runner else None
@@ -205,7 +195,7 @@ def _runner(command: str) -> Callable:
     elif command == "ros2":
         from swarmmap.services.ros2 import run
     else:  # one of the run's services: the main loop its kind names
-        from swarmmap.shared.services import kind
+        from swarmmap.shared.wire.services import kind
 
         module, _, function = kind(command).runner.partition(":")
         run = getattr(importlib.import_module(module), function)
@@ -225,7 +215,7 @@ def list_plugins(args: argparse.Namespace) -> int:
 
 def list_services(args: argparse.Namespace) -> int:
     """``swarmmap services``: the run's kinds of service; ``--slurm``: the lines team.sbatch starts its steps from."""
-    from swarmmap.shared.services import kinds, slurm_lines
+    from swarmmap.shared.wire.services import kinds, slurm_lines
 
     if args.slurm:
         print("\n".join(slurm_lines()))

@@ -3,11 +3,11 @@
 Run-book: ``swarmmap lidar --robot I --config RUN_DIR/config.yaml``.
 
 - Live: subscribes to ``robots/<I>/scan``, applies the sensor model (Gaussian range noise,
-  dropouts, max-range returns; :func:`swarmmap.shared.sensing.sensor_model`), samples free
+  dropouts, max-range returns; :func:`swarmmap.shared.world.sensing.sensor_model`), samples free
   points along each beam and an occupied point at each hit, and publishes ``Samples`` on
   ``robots/<I>/samples``; the end of the traversal is passed on as ``last``.
   ``--record FILE`` also writes the served stream to a recording (see
-  :mod:`swarmmap.shared.recording`), completed when the traversal ends or the streamer stops.
+  :mod:`swarmmap.shared.world.recording`), completed when the traversal ends or the streamer stops.
   At most ``INBOX_SCANS`` scans wait for the sensor model: when more come than it takes, the
   scans' subscription waits, and so does the world's reliable publisher (its back pressure:
   at ``world.time_scale`` 0 the world drives as fast as the streamers take its scans).
@@ -25,12 +25,13 @@ import time
 
 import numpy as np
 
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, fail, task_robot
-from swarmmap.shared.plans import plan_reference
-from swarmmap.shared.protocol import Keys, ProtocolError, Samples, Scan, Tensor, decode, encode
-from swarmmap.shared.recording import RecordingError, RecordingWriter, read_recording
-from swarmmap.shared.sensing import beam_samples, sensor_model
+from swarmmap.shared.run.config import RunConfig, fail, task_robot
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.codec import decode, encode
+from swarmmap.shared.wire.protocol import Keys, ProtocolError, Samples, Scan, Tensor
+from swarmmap.shared.world.plans import plan_reference
+from swarmmap.shared.world.recording import RecordingError, RecordingWriter, read_recording
+from swarmmap.shared.world.sensing import beam_samples, sensor_model
 
 log = logging.getLogger("lidar")
 INBOX_SCANS = 16  # scans that may wait for the sensor model (a few seconds of scans at any scan rate)

@@ -45,21 +45,21 @@ import rerun as rr
 import rerun.blueprint as rrb
 import torch
 
-from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.bnn import fast_bf16, predict_mean_std
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.compression import Decompressor
-from swarmmap.shared.config import ConfigError, RunConfig
-from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.graphs import GraphError, run_graph
-from swarmmap.shared.layout import StateLayout
-from swarmmap.shared.models import StochasticNet, pick_device, set_flat
-from swarmmap.shared.networks import build_network, has_std
-from swarmmap.shared.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
-from swarmmap.shared.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
-from swarmmap.shared.rosout import MapSink, McapBag
-from swarmmap.shared.rundir import unused_path
-from swarmmap.shared.runtime import die_with_parent
+from swarmmap.shared.learning.bnn import fast_bf16, predict_mean_std
+from swarmmap.shared.learning.graphs import GraphError, run_graph
+from swarmmap.shared.learning.layout import StateLayout
+from swarmmap.shared.learning.models import StochasticNet, pick_device, set_flat
+from swarmmap.shared.learning.networks import build_network, has_std
+from swarmmap.shared.run.atomic import atomic_write_text
+from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.run.overview import OCCUPANCY_CMAP, STD_CMAP, colorize
+from swarmmap.shared.run.rosout import MapSink, McapBag
+from swarmmap.shared.run.rundir import unused_path
+from swarmmap.shared.run.runtime import die_with_parent
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.compression import Decompressor
+from swarmmap.shared.wire.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.world.floorplan import OccupancyGrid
 
 log = logging.getLogger("swarmmap.observer")
 WATCH_RING = 1024  # scans and metrics that may wait for the observer before the oldest are dropped
@@ -405,7 +405,7 @@ def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, devi
             sinks.append(McapBag(unused_path(cfg.observer.mcap), cfg.observer.std_max))  # a resumed run keeps its earlier bag
             log.info("writing the run as a rosbag2 (MCAP) to %s", sinks[-1].path)
         if (namespaces := cfg.ros2_maps()) is not None:
-            from swarmmap.shared.rosmaps import Ros2Maps
+            from swarmmap.shared.run.rosmaps import Ros2Maps
 
             sinks.append(Ros2Maps(namespaces, cfg.observer.std_max))
             log.info("publishing the maps to ROS 2: %s and /map (nav_msgs/OccupancyGrid, transient local)",

@@ -9,7 +9,7 @@ and the SLURM job scripts all start one, so every launcher leaves the same run d
   ``metrics.csv`` (every learner's ``Metrics`` as it arrives), ``groundtruth.png`` and
   ``groundtruth.npz`` (the world's map and validation set), ``summary.json`` (per learner:
   first and final val_bce, rounds, bytes; the run's outcome and why), and at the end
-  ``overview.png`` (:mod:`swarmmap.shared.overview`: ground truth beside each robot's saved maps).
+  ``overview.png`` (:mod:`swarmmap.shared.run.overview`: ground truth beside each robot's saved maps).
 
 It also decides when the run is over, and says so on ``run/done`` (``RunDone``), on which
 every other service exits: the run succeeded when every learner sent its final ``Metrics``;
@@ -48,13 +48,13 @@ from pathlib import Path
 
 import numpy as np
 
-from swarmmap.shared.atomic import atomic_write_bytes, atomic_write_text, save_png
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig, fail
-from swarmmap.shared.disk import disk_words, is_full, write_problem
-from swarmmap.shared.progress import PROGRESS_EVERY_S, TeamProgress, TraversalProgress, duration
-from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan, WorldMap
-from swarmmap.shared.rundir import read_summary, run_state
+from swarmmap.shared.run.atomic import atomic_write_bytes, atomic_write_text, save_png
+from swarmmap.shared.run.config import RunConfig, fail
+from swarmmap.shared.run.disk import disk_words, is_full, write_problem
+from swarmmap.shared.run.progress import PROGRESS_EVERY_S, TeamProgress, TraversalProgress, duration
+from swarmmap.shared.run.rundir import read_summary, run_state
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.protocol import Keys, Metrics, RunDone, Scan, WorldMap
 
 log = logging.getLogger("recorder")
 
@@ -380,7 +380,7 @@ def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
 
 def reference_scores(world: WorldMap) -> dict:
     """The log-odds grid's scores on the held-out validation set of a run on a dataset."""
-    from swarmmap.shared.logodds import LogOddsGrid, bce
+    from swarmmap.shared.world.logodds import LogOddsGrid, bce
 
     grid = LogOddsGrid(np.zeros(world.grid.shape, np.float32), world.resolution, tuple(world.origin))
     p = world.reference.numpy()
@@ -439,7 +439,7 @@ def draw_overview(cfg: RunConfig, notes: dict[int, str]) -> None:
     """``overview.png`` of the maps the learners saved, ``notes`` under each robot's name (a
     figure that fails is logged, never the run's failure)."""
     t0 = time.perf_counter()
-    from swarmmap.shared.overview import write_overview
+    from swarmmap.shared.run.overview import write_overview
 
     try:
         path = write_overview(cfg.run_dir, cfg.std_max(), notes)

@@ -30,9 +30,9 @@ import threading
 import time
 from pathlib import Path
 
-from swarmmap.shared.config import ConfigError, RunConfig
-from swarmmap.shared.datasets import BagMessages, BagTopics, DatasetError, messages_log, write_rosbag
-from swarmmap.shared.rosmaps import need_rclpy
+from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.run.rosmaps import need_rclpy
+from swarmmap.shared.world.datasets import BagMessages, BagTopics, DatasetError, messages_log, write_rosbag
 
 log = logging.getLogger("ros2")
 

@@ -2,7 +2,7 @@
 
 Run-book: ``swarmmap router --zenoh-listen tcp/0.0.0.0:7447``; other services then connect
 with ``--zenoh-connect tcp/<host>:7447``. With a router per host (``up.routers: per-host``,
-shared/mesh.py) each is started with ``--ident r<i>`` on robot ``i``'s host and
+shared/wire/mesh.py) each is started with ``--ident r<i>`` on robot ``i``'s host and
 ``--zenoh-connect`` naming the routers it links to; the routers relay for each other. In a secure run (the default) every endpoint is TLS
 (``tcp/`` is served as ``tls/``, other protocols are refused; without ``--zenoh-listen`` it
 listens on ``tls/[::]:7447``), every other service is its client, and it enforces the run's
@@ -16,17 +16,17 @@ import logging
 import threading
 import time
 
-from swarmmap.shared.bus import LINKED_ROUTER_CLOSES_STUCK_S, Bus
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.graphs import GraphError, run_graph
-from swarmmap.shared.protocol import Keys
-from swarmmap.shared.secrets import access_policy
+from swarmmap.shared.learning.graphs import GraphError, run_graph
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.bus import LINKED_ROUTER_CLOSES_STUCK_S, Bus
+from swarmmap.shared.wire.protocol import Keys
+from swarmmap.shared.wire.secrets import access_policy
 
 log = logging.getLogger("router")
 
 
 def run_policy(cfg: RunConfig) -> dict:
-    """The run's access policy (shared/secrets.py): learners read their neighbours' exchange
+    """The run's access policy (shared/wire/secrets.py): learners read their neighbours' exchange
     keys when the graph is known before the robots drive, every learner's otherwise."""
     spec = cfg.graph()
     neighbours = None

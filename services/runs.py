@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from swarmmap.shared.config import did_you_mean
-from swarmmap.shared.rundir import TeamCurve, is_run_dir, local_time, run_info, team_curve
+from swarmmap.shared.run.config import did_you_mean
+from swarmmap.shared.run.rundir import TeamCurve, is_run_dir, local_time, run_info, team_curve
 
 
 class ToolError(Exception):

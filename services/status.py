@@ -20,10 +20,12 @@ from pathlib import Path
 
 import zenoh
 
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import ConfigError, RunConfig, config_from_args
-from swarmmap.shared.protocol import Keys, Metrics, decode
-from swarmmap.shared.rundir import final_val_bce, local_time, read_metrics, read_summary, summary_outcome
+from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.run.flags import config_from_args
+from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, read_summary, summary_outcome
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.codec import decode
+from swarmmap.shared.wire.protocol import Keys, Metrics
 
 # Not services of the run: the launcher, this tool and the learners' exchange readiness tokens.
 NOT_SERVICES = ("status", "exchange", "up")

@@ -11,7 +11,7 @@
 
 Overrides are the config's fields, a section's with a double underscore (``learner__rounds=20``,
 as ``SWARMMAP_LEARNER__ROUNDS``) or as a dict (``learner={"rounds": 20}``); they are validated
-here, before anything starts (a :class:`~swarmmap.shared.config.ConfigError` names the field).
+here, before anything starts (a :class:`~swarmmap.shared.run.config.ConfigError` names the field).
 :func:`run` starts ``swarmmap up`` with this interpreter and returns when it ends; a run that
 fails returns too (``Run.ok`` False, ``Run.failure`` why) and a run that could not start raises
 :class:`RunError` with ``up``'s words.
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from swarmmap.shared.config import ConfigError, RunConfig, deep_merge, resolve, validate_config
-from swarmmap.shared.rundir import metric_rows, read_summary
+from swarmmap.shared.run.config import ConfigError, RunConfig, deep_merge, resolve, validate_config
+from swarmmap.shared.run.rundir import metric_rows, read_summary
 
 
 class RunError(RuntimeError):
@@ -163,7 +163,7 @@ class Run:
 
     def model(self, robot: int):
         """Robot ``robot``'s trained network (a torch module, on the CPU)."""
-        from swarmmap.shared.networks import load_model
+        from swarmmap.shared.learning.networks import load_model
 
         path = self.path / "models" / f"robot-{robot}.pt"
         if not path.exists():

@@ -61,9 +61,9 @@ class DatasetReader:
     """A reader of real LiDAR logs (``world.dataset``, ``swarmmap up --dataset``).
 
     ``claims(path)`` says whether a file or folder is one it reads (by its name, cheaply);
-    ``read(path, pose, topics)`` returns a :class:`~swarmmap.shared.datasets.LaserLog` (``pose``:
+    ``read(path, pose, topics)`` returns a :class:`~swarmmap.shared.world.datasets.LaserLog` (``pose``:
     ``world.dataset_pose``; ``topics``: a BagTopics, for readers of ROS bags) or raises
-    :class:`~swarmmap.shared.datasets.DatasetError` naming what is wrong; ``describe`` says
+    :class:`~swarmmap.shared.world.datasets.DatasetError` naming what is wrong; ``describe`` says
     what it reads, for help texts and refusals."""
 
     claims: Callable[[Path], bool]
@@ -91,7 +91,7 @@ class Group:
 
 GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", "swarmmap.shared.plugins:ConsensusPlugin"),
                               Group("datasets", "world.dataset", "swarmmap.shared.plugins:DatasetReader"),
-                              Group("services", "service", "swarmmap.shared.services:ServiceKind"))}
+                              Group("services", "service", "swarmmap.shared.wire.services:ServiceKind"))}
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmmap.shared.config import ZenohSettings
+from swarmmap.shared.run.config import ZenohSettings
 
 REPO = Path(__file__).resolve().parents[1]
 KIT_DATA = REPO.parent / "shared" / "data"
@@ -97,7 +97,7 @@ def run_id() -> str:
 @pytest.fixture
 def zenoh_pair() -> tuple[ZenohSettings, ZenohSettings]:
     """Settings for two peers on loopback: one listens on a free port, the other connects to it
-    (insecure: these tests are of the transport; tests/shared/test_security.py checks the secure one)."""
+    (insecure: these tests are of the transport; tests/shared/wire/test_secrets.py checks the secure one)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     a = ZenohSettings(mode="peer", listen=[endpoint], multicast_scouting=False, insecure=True)
     b = ZenohSettings(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], multicast_scouting=False, insecure=True)
@@ -112,8 +112,8 @@ def recorded_run(run_dir: Path, ok: bool = True, losses: tuple[float, ...] = (0.
     import json
 
     from swarmmap.services.recorder import MetricsRecorder, summary
-    from swarmmap.shared.config import resolve
-    from swarmmap.shared.protocol import Metrics
+    from swarmmap.shared.run.config import resolve
+    from swarmmap.shared.wire.protocol import Metrics
 
     run_dir.mkdir(parents=True)
     cfg = resolve({"preset": "smoke", "run_id": run_id, "robots": len(losses), "run_dir": str(run_dir),

@@ -12,8 +12,8 @@ import pytest
 
 from swarmmap.services.learner.registry import NODES
 from swarmmap.shared import plugins
-from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.layout import EXTRA_VECTOR_ALGORITHMS
+from swarmmap.shared.learning.layout import EXTRA_VECTOR_ALGORITHMS
+from swarmmap.shared.run.config import LearnerSettings
 from tests.conftest import REPO
 
 LEARNER = REPO / "services" / "learner"
@@ -44,8 +44,8 @@ def test_algorithm1_imports_no_protocol_codec_bus_or_zenoh():
     code = ("import sys, swarmmap.services.learner.algorithm1, swarmmap.services.learner.clock\n"
             "print(' '.join(sorted(m for m in sys.modules if m.startswith(('swarmmap', 'zenoh')))))")
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    banned = {"zenoh", "swarmmap.shared.protocol", "swarmmap.shared.bus", "swarmmap.services.learner.codec",
-              "swarmmap.shared.compression", "swarmmap.services.learner.zenoh_transport"}
+    banned = {"zenoh", "swarmmap.shared.wire.protocol", "swarmmap.shared.wire.bus", "swarmmap.services.learner.codec",
+              "swarmmap.shared.wire.compression", "swarmmap.services.learner.zenoh_transport"}
     assert "swarmmap.services.learner.algorithm1" in loaded and not banned & set(loaded), loaded
     src = (LEARNER / "algorithm1.py").read_text()
     assert "def finish_round(self)" in src and "def on_state(self" in src and "def on_complete(self" in src

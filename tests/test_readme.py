@@ -11,8 +11,8 @@ import pytest
 from pydantic import BaseModel
 
 from swarmmap.services.cli import build_parser, descriptions
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.protocol import MESSAGE_TYPES
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.protocol import MESSAGE_TYPES
 from tests.conftest import REPO
 
 pytestmark = pytest.mark.timeout(60)

@@ -8,7 +8,7 @@
 Each experiment runs the real system (``swarmmap up``, learners in one process by default,
 which gives the same parameters as over Zenoh) once per setting, then writes PNG figures, the
 CSV behind them and ``report.md`` into ``--out``. Every report carries the uncertainty scores
-of :mod:`swarmmap.shared.uncertainty` (NLL, ECE, AUROC of the std for the map's errors, mean std
+of :mod:`swarmmap.shared.learning.uncertainty` (NLL, ECE, AUROC of the std for the map's errors, mean std
 over observed and never-observed cells).
 
 - ``kl-sweep``: one isolated agent (``--robots 1``, no communication) whose path visits only
@@ -35,8 +35,8 @@ import typing
 from pathlib import Path
 
 from swarmmap.shared import plugins
-from swarmmap.shared.compression import COMPRESSIONS
-from swarmmap.shared.config import DEFAULT_PRESET, PRESETS, ConfigError, LearnerSettings
+from swarmmap.shared.run.config import DEFAULT_PRESET, PRESETS, ConfigError, LearnerSettings
+from swarmmap.shared.wire.compression import COMPRESSIONS
 
 # The choices, as the config's fields allow them.
 BUILTIN_RULES = ("dinno", "ramen", "sigma", "dgvi")  # the consensus experiment's rules, in its order

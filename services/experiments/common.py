@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from swarmmap.shared.config import ConfigError, RunConfig, apply_override, format_validation_error, resolve
-from swarmmap.shared.overview import map_extent, show
-from swarmmap.shared.overview import pyplot as _plt
-from swarmmap.shared.rundir import read_metrics, read_summary
+from swarmmap.shared.run.config import ConfigError, RunConfig, apply_override, format_validation_error, resolve
+from swarmmap.shared.run.overview import map_extent, show
+from swarmmap.shared.run.overview import pyplot as _plt
+from swarmmap.shared.run.rundir import read_metrics, read_summary
 
 log = logging.getLogger("experiment")
 

@@ -27,8 +27,8 @@ from swarmmap.services.experiments.common import (
     write_csv,
 )
 from swarmmap.services.experiments.score import SCORE_KEYS, mean_scores, score_run, scores_table
-from swarmmap.shared.config import STD_MODELS, RunConfig
-from swarmmap.shared.rundir import read_metrics
+from swarmmap.shared.run.config import STD_MODELS, RunConfig
+from swarmmap.shared.run.rundir import read_metrics
 
 
 def cell_name(consensus: str, link: float, every: int, compression: str) -> str:

@@ -22,7 +22,7 @@ from swarmmap.services.experiments.common import (
     write_csv,
 )
 from swarmmap.services.experiments.score import SCORE_KEYS, load_maps, score_run, scores_table
-from swarmmap.shared.rundir import final_val_bce
+from swarmmap.shared.run.rundir import final_val_bce
 
 FLAGS = {"learner.kl_weight": "--kl-weights", "world.rooms_per_robot": "--rooms", "learner.rounds": "--rounds"}
 

@@ -28,9 +28,9 @@ from swarmmap.services.experiments.common import (
     write_csv,
 )
 from swarmmap.services.experiments.score import SCORE_KEYS, load_maps, mean_scores, score_run, scores_table
-from swarmmap.shared.config import ConfigError, RunConfig
-from swarmmap.shared.config import parse_shape as parse_model_shape
-from swarmmap.shared.rundir import final_val_bce, read_metrics
+from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.run.config import parse_shape as parse_model_shape
+from swarmmap.shared.run.rundir import final_val_bce, read_metrics
 
 RegCell = tuple[tuple[int, ...], float, float]  # (model shape, W_rho / W_mu, kl_weight)
 

@@ -1,6 +1,6 @@
 """``swarmmap experiment score RUN_DIR``: the uncertainty scores of a finished run's maps (NLL,
 ECE, AUROC of the std for the map's errors and for unobserved cells, mean std over observed and
-never-observed cells; :mod:`swarmmap.shared.uncertainty`), with reliability diagrams; and the
+never-observed cells; :mod:`swarmmap.shared.learning.uncertainty`), with reliability diagrams; and the
 scoring every experiment's report uses."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from swarmmap.services.experiments.common import fmt, json_ready, move_aside, reliability_figure, write_csv
-from swarmmap.shared.config import resolve
-from swarmmap.shared.overview import load_maps, robot_files, truth_grid, truth_on
-from swarmmap.shared.rundir import final_val_bce
+from swarmmap.shared.run.config import resolve
+from swarmmap.shared.run.overview import load_maps, robot_files, truth_grid, truth_on
+from swarmmap.shared.run.rundir import final_val_bce
 
 SCORE_KEYS = ("nll", "ece", "accuracy", "auroc_error", "auroc_unobserved", "std_observed", "std_unobserved", "std_ratio")
 
@@ -31,7 +31,7 @@ def score_run(run_dir: Path, radius_m: float = 0.1) -> dict[int, dict[str, float
 def score_maps(run_dir: Path, maps: list[dict[str, np.ndarray]], radius_m: float = 0.1) -> list[dict[str, float]]:
     """Scores of mean/std maps (``mean``, ``std``, ``resolution``, ``origin``) against the run's
     ground truth, observed cells being those within ``radius_m`` of any robot's training point."""
-    from swarmmap.shared.uncertainty import observed_mask, score_map
+    from swarmmap.shared.learning.uncertainty import observed_mask, score_map
 
     grid = truth_grid(run_dir)
     files = sorted((run_dir / "data").glob("robot-*.npz"))
@@ -55,8 +55,8 @@ def held_out_scores(maps: dict[str, np.ndarray], val_points: np.ndarray, val_lab
                     radius_m: float) -> dict[str, float]:
     """Scores of a map on a dataset's held-out beams: its mean and std at each validation point's
     cell against the point's label (a run on real logs has no ground-truth grid)."""
-    from swarmmap.shared.floorplan import OccupancyGrid
-    from swarmmap.shared.uncertainty import observed_mask, score_map
+    from swarmmap.shared.learning.uncertainty import observed_mask, score_map
+    from swarmmap.shared.world.floorplan import OccupancyGrid
 
     res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
     rows, cols, inside = OccupancyGrid(np.zeros(shape, np.uint8), res, origin).cells(val_points)
@@ -69,14 +69,14 @@ def held_out_scores(maps: dict[str, np.ndarray], val_points: np.ndarray, val_lab
 def reference_row(run_dir: Path) -> dict[str, float] | None:
     """The log-odds grid's scores on a dataset's held-out beams (no std: those scores are NaN),
     or None for a run with a ground truth."""
-    from swarmmap.shared.uncertainty import score_map
+    from swarmmap.shared.learning.uncertainty import score_map
 
     with np.load(run_dir / "groundtruth.npz") as gt:
         if "reference" not in gt.files:
             return None
         maps = {"mean": gt["reference"], "resolution": gt["resolution"], "origin": gt["origin"]}
         points, labels = gt["val_points"], gt["val_labels"]
-    from swarmmap.shared.floorplan import OccupancyGrid
+    from swarmmap.shared.world.floorplan import OccupancyGrid
 
     rows, cols, inside = OccupancyGrid(np.zeros(maps["mean"].shape, np.uint8), float(maps["resolution"]),
                                        tuple(maps["origin"])).cells(points)
@@ -89,8 +89,8 @@ def model_maps(run_dir: Path, std_of: str = "probability") -> dict[int, dict[str
     """Each robot's mean and std maps computed anew from its final model (``models/robot-<i>.pt``)
     on the run's map grid with its number of passes; ``std_of="logit"``: the std of the passes'
     logits instead of their probabilities."""
-    from swarmmap.shared.bnn import predict_mean_std
-    from swarmmap.shared.networks import load_model
+    from swarmmap.shared.learning.bnn import predict_mean_std
+    from swarmmap.shared.learning.networks import load_model
 
     learner = resolve(config_file=run_dir / "config.yaml", environ={}).learner  # the maps' grid and passes
     grid = truth_grid(run_dir)

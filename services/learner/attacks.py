@@ -23,8 +23,8 @@ import logging
 import numpy as np
 
 from swarmmap.services.learner.transport import Envelope, Transport, plain_vector
-from swarmmap.shared.bnn import is_rho
-from swarmmap.shared.layout import StateLayout
+from swarmmap.shared.learning.bnn import is_rho
+from swarmmap.shared.learning.layout import StateLayout
 
 log = logging.getLogger("learner")
 ATTACKS = ("none", "ratchet", "signflip", "scale", "noise", "sigma", "stall", "equivocate")

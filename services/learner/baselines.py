@@ -1,6 +1,6 @@
 """DiNNO's decentralised baselines: DSGD and DSGT, with Metropolis mixing weights.
 
-Both mix the States of the round's neighbours (``weights``, :func:`~swarmmap.shared.graphs.metropolis_weights`;
+Both mix the States of the round's neighbours (``weights``, :func:`~swarmmap.shared.learning.graphs.metropolis_weights`;
 an absent neighbour's weight stays with the node) and take one gradient step of size ``lr(k)``.
 Between exchanges (``learner.exchange_every`` > 1) a round has nobody to mix with: DSGD takes a
 plain local gradient step, DSGT a tracked step with the identity for mixing (theta <- theta -
@@ -14,7 +14,7 @@ import torch
 
 from swarmmap.services.learner.node import LocalNode, NodeInputs
 from swarmmap.services.learner.robust import PullBound
-from swarmmap.shared.models import set_flat
+from swarmmap.shared.learning.models import set_flat
 
 
 def self_weight(weights: dict[int, float], node: int, peers: dict[int, np.ndarray]) -> float:

@@ -2,7 +2,7 @@
 
 ``RUN_DIR/checkpoints/robot-<i>.pt`` holds the round, the State, the node's own state (duals,
 rho, optimizers, RNG states), the run id, the settings' fingerprint
-(:func:`~swarmmap.shared.fingerprint.settings_fingerprint`) and the learner's counters. Offline,
+(:func:`~swarmmap.shared.run.fingerprint.settings_fingerprint`) and the learner's counters. Offline,
 the training points do not change: they are written once, beside it
 (``robot-<i>-data.pt``, with the fingerprint too), so that frequent checkpoints stay small.
 Every file is written atomically; a checkpoint or a training-points file written with other
@@ -19,9 +19,9 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.errors import LearnerError
-from swarmmap.shared.atomic import atomic_write_bytes
-from swarmmap.shared.disk import disk_words
-from swarmmap.shared.fingerprint import fingerprint_diff
+from swarmmap.shared.run.atomic import atomic_write_bytes
+from swarmmap.shared.run.disk import disk_words
+from swarmmap.shared.run.fingerprint import fingerprint_diff
 
 
 class Checkpoints:

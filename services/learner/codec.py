@@ -7,13 +7,13 @@ Algorithm 1 takes: vectors in, vectors out. It
 - numbers States by training round: with ``learner.exchange_every`` = E, Algorithm 1's round c
   is training rounds cE .. cE + E - 1 and its State travels as round cE, so observers and logs
   see training rounds whatever E is;
-- compresses States (``learner.compression``, :mod:`~swarmmap.shared.compression`) and rebuilds
+- compresses States (``learner.compression``, :mod:`~swarmmap.shared.wire.compression`) and rebuilds
   the vectors of the States it receives, whatever encoding each sender chose. It sits outside
   the fault layer, so a State the harness loses is lost to the rebuilding too;
 - on a dynamic disk graph (``radius``), stamps each State with its robot's position and ignores
   the messages of neighbours farther than ``radius`` (their link is out of range: a round with
   ``learner.round_wait_s`` goes on without them);
-- with a :class:`~swarmmap.shared.unseen.Coverage` (``learner.share_coverage``), stamps each
+- with a :class:`~swarmmap.shared.world.unseen.Coverage` (``learner.share_coverage``), stamps each
   State with the cells its node knows some robot covers, and offers what the States it
   receives say to it (merged once the node is past their round; transitively, the team's
   coverage spreads along the graph).
@@ -29,9 +29,9 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmmap.services.learner.transport import Delivery, Envelope, Link
-from swarmmap.shared.compression import Compressor, Decompressor
-from swarmmap.shared.protocol import StateBody, Tensor
-from swarmmap.shared.unseen import Coverage
+from swarmmap.shared.wire.compression import Compressor, Decompressor
+from swarmmap.shared.wire.protocol import StateBody, Tensor
+from swarmmap.shared.world.unseen import Coverage
 
 log = logging.getLogger("learner")
 

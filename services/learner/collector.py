@@ -15,8 +15,8 @@ from collections import deque
 import numpy as np
 
 from swarmmap.services.learner.errors import LearnerError
-from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.protocol import Samples
+from swarmmap.shared.run.config import LearnerSettings
+from swarmmap.shared.wire.protocol import Samples
 
 log = logging.getLogger("learner")
 

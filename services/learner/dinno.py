@@ -26,7 +26,7 @@ from swarmmap.services.learner.node import LocalNode, NodeInputs, make_optimizer
 from swarmmap.services.learner.regularization import UniformL2
 from swarmmap.services.learner.robust import PullBound
 from swarmmap.services.learner.settings import DinnoSettings
-from swarmmap.shared.models import set_flat
+from swarmmap.shared.learning.models import set_flat
 
 
 class DinnoNode(LocalNode):

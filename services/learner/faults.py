@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from swarmmap.services.learner.transport import Delivery, Envelope, Link, Transport
-from swarmmap.shared.config import FaultSettings
-from swarmmap.shared.protocol import StateBody
+from swarmmap.shared.run.config import FaultSettings
+from swarmmap.shared.wire.protocol import StateBody
 
 Message = Envelope | Delivery
 

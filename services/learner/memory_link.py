@@ -12,7 +12,8 @@ from collections import Counter
 import numpy as np
 
 from swarmmap.services.learner.transport import Delivery, Envelope, Kind, MemoryHub, plain_vector
-from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateBody, decode, encode, encode_state
+from swarmmap.shared.wire.codec import decode, encode, encode_state
+from swarmmap.shared.wire.protocol import ProtocolError, RoundComplete, State, StateBody
 
 
 class MemoryLink:

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from swarmmap.shared.bnn import BayesNet, DropoutPlan
-from swarmmap.shared.models import DropoutNet
+from swarmmap.shared.learning.bnn import BayesNet, DropoutPlan
+from swarmmap.shared.learning.models import DropoutNet
 
 
 @torch.no_grad()

@@ -4,11 +4,11 @@ builds on (:class:`LocalNode`: a robot's model, its local data and the loss on a
 Rules: DiNNO (:mod:`~swarmmap.services.learner.dinno`), DiNNO's DSGD and DSGT baselines
 (:mod:`~swarmmap.services.learner.baselines`); :data:`~swarmmap.services.learner.registry.NODES`
 picks one by ``learner.algorithm``. A node's State is one float32 vector laid out as
-:class:`~swarmmap.shared.layout.StateLayout` says.
+:class:`~swarmmap.shared.learning.layout.StateLayout` says.
 
 The loss is BCE on a random batch, plus ``kl_weight`` x the KL to the prior for a Bayesian
 network (the paper's equation 7), plus, with ``unseen_weight`` > 0, the noise-contrastive prior
-on points away from every robot's data known to this node (:class:`~swarmmap.shared.unseen.Coverage`).
+on points away from every robot's data known to this node (:class:`~swarmmap.shared.world.unseen.Coverage`).
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ import torch.nn.functional as F
 
 from swarmmap.services.learner.settings import TrainingSettings
 from swarmmap.services.learner.transport import plain_vector
-from swarmmap.shared.bnn import BayesNet, function_prior_kl, sampled_logits
-from swarmmap.shared.layout import StateLayout
-from swarmmap.shared.models import StochasticNet, flatten_into
-from swarmmap.shared.unseen import Coverage
+from swarmmap.shared.learning.bnn import BayesNet, function_prior_kl, sampled_logits
+from swarmmap.shared.learning.layout import StateLayout
+from swarmmap.shared.learning.models import StochasticNet, flatten_into
+from swarmmap.shared.world.unseen import Coverage
 
 
 class Node(Protocol):

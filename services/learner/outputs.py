@@ -2,7 +2,7 @@
 
 ``models/robot-<i>.pt`` (the final model), ``data/robot-<i>.npz`` (its training points) and its
 learned map at the ground truth's resolution (``learner.map_resolution_m`` when set), written
-by :func:`swarmmap.shared.mapfiles.save_learned_map`: ``maps/robot-<i>.npz`` (mean, std where
+by :func:`swarmmap.shared.run.mapfiles.save_learned_map`: ``maps/robot-<i>.npz`` (mean, std where
 the model has one, origin, resolution), ``maps/robot-<i>-mean.png`` and ``-std.png`` on the
 viewer's scales, and the ROS map ``maps/robot-<i>.yaml`` + ``.pgm`` (and ``-std.yaml`` +
 ``-std.pgm``), which ``swarmmap up --floorplan`` loads back.
@@ -16,14 +16,14 @@ import time
 
 import numpy as np
 
-from swarmmap.shared.atomic import atomic_write_bytes
-from swarmmap.shared.bnn import predict_mean_std
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.floorplan import OccupancyGrid
-from swarmmap.shared.mapfiles import save_learned_map
-from swarmmap.shared.models import StochasticNet
-from swarmmap.shared.networks import save_model
-from swarmmap.shared.protocol import WorldMap
+from swarmmap.shared.learning.bnn import predict_mean_std
+from swarmmap.shared.learning.models import StochasticNet
+from swarmmap.shared.learning.networks import save_model
+from swarmmap.shared.run.atomic import atomic_write_bytes
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.run.mapfiles import save_learned_map
+from swarmmap.shared.wire.protocol import WorldMap
+from swarmmap.shared.world.floorplan import OccupancyGrid
 
 log = logging.getLogger("learner")
 

@@ -26,9 +26,9 @@ from swarmmap.services.learner.settings import (
     RobustSettings,
     TrainingSettings,
 )
-from swarmmap.shared.config import LearnerSettings
-from swarmmap.shared.graphs import metropolis_weights
-from swarmmap.shared.layout import StateLayout, state_copies
+from swarmmap.shared.learning.graphs import metropolis_weights
+from swarmmap.shared.learning.layout import StateLayout, state_copies
+from swarmmap.shared.run.config import LearnerSettings
 
 
 @dataclass(frozen=True)

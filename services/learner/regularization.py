@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from swarmmap.services.learner.settings import RegularizationSettings
-from swarmmap.shared.bnn import BayesNet, gaussian_kl, is_rho
+from swarmmap.shared.learning.bnn import BayesNet, gaussian_kl, is_rho
 
 
 def l2(x: torch.Tensor, target: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:

@@ -31,7 +31,7 @@ import logging
 import numpy as np
 import torch
 
-from swarmmap.shared.layout import StateLayout
+from swarmmap.shared.learning.layout import StateLayout
 
 log = logging.getLogger("learner")
 MIN_NEIGHBOURS = 3  # a round's honest spread is the median of at least this many neighbours' States

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from swarmmap.shared.bnn import is_rho
-from swarmmap.shared.layout import StateLayout
+from swarmmap.shared.learning.bnn import is_rho
+from swarmmap.shared.learning.layout import StateLayout
 
 GROUP_FACTOR = 4  # a Bayesian network's means (or rho) may lie this many times max_distance of their own norm away
 

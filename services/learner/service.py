@@ -61,18 +61,19 @@ from swarmmap.services.learner.settings import ScheduleSettings, exchange_rules
 from swarmmap.services.learner.subrounds import SubRounds
 from swarmmap.services.learner.transport import Link, MemoryHub, Transport
 from swarmmap.services.learner.zenoh_transport import ZenohTransport
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.compression import Compressor
-from swarmmap.shared.config import RunConfig, task_robot
-from swarmmap.shared.fingerprint import settings_fingerprint
-from swarmmap.shared.graphs import GraphError, run_graph
-from swarmmap.shared.layout import StateLayout
-from swarmmap.shared.models import pick_device, set_flat
-from swarmmap.shared.networks import build_network
+from swarmmap.shared.learning.graphs import GraphError, run_graph
+from swarmmap.shared.learning.layout import StateLayout
+from swarmmap.shared.learning.models import pick_device, set_flat
+from swarmmap.shared.learning.networks import build_network
 from swarmmap.shared.plugins import origin
-from swarmmap.shared.protocol import CHAINED_ENCODINGS, MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap, encode_state
-from swarmmap.shared.slots import ComputeSlots, slots_dir
-from swarmmap.shared.unseen import Coverage
+from swarmmap.shared.run.config import RunConfig, task_robot
+from swarmmap.shared.run.fingerprint import settings_fingerprint
+from swarmmap.shared.run.slots import ComputeSlots, slots_dir
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.codec import encode_state
+from swarmmap.shared.wire.compression import Compressor
+from swarmmap.shared.wire.protocol import CHAINED_ENCODINGS, MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap
+from swarmmap.shared.world.unseen import Coverage
 
 log = logging.getLogger("learner")
 MakeLink = Callable[[StateLayout], Link]

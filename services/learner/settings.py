@@ -1,6 +1,6 @@
 """Each part of the learner's own small settings, made from the ``learner`` section in one place.
 
-The learner's config section (:class:`~swarmmap.shared.config.LearnerSettings`) is what a user
+The learner's config section (:class:`~swarmmap.shared.run.config.LearnerSettings`) is what a user
 writes; the parts take only what they use: Algorithm 1 and the clock mode
 :class:`~swarmmap.services.learner.exchange.ExchangeRules`, a node's loss and schedule
 :class:`TrainingSettings`, DiNNO's update :class:`DinnoSettings`, and so on. Nothing else in the
@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from swarmmap.services.learner.exchange import ExchangeRules
-from swarmmap.shared.config import LearnerSettings, consensus_options
 from swarmmap.shared.plugins import load
+from swarmmap.shared.run.config import LearnerSettings, consensus_options
 
 
 def exchange_rules(s: LearnerSettings) -> ExchangeRules:

@@ -22,7 +22,7 @@ import numpy as np
 from swarmmap.services.learner.errors import LearnerError
 from swarmmap.services.learner.node import Node
 from swarmmap.services.learner.settings import ScheduleSettings
-from swarmmap.shared.protocol import all_finite
+from swarmmap.shared.wire.codec import all_finite
 
 Report = Callable[[int, np.ndarray, dict[int, np.ndarray]], None]  # report(round, own State, the peers' States)
 Save = Callable[[int, np.ndarray], None]  # save(Algorithm 1 round, the State it starts from)

@@ -7,8 +7,8 @@ Two layers, each a protocol:
   vector, never an encoded message), learn who has left, and get the buffer the node writes its
   next State into (:meth:`Transport.new_state`, the payload it is sent from, where the link has one).
 - :class:`Link` is the wire below it: it sends a State's vector or an encoded
-  :class:`~swarmmap.shared.protocol.StateBody` and delivers what arrives as a :class:`Delivery`
-  (the received :class:`~swarmmap.shared.protocol.State`, still encoded). A
+  :class:`~swarmmap.shared.wire.protocol.StateBody` and delivers what arrives as a :class:`Delivery`
+  (the received :class:`~swarmmap.shared.wire.protocol.State`, still encoded). A
   :class:`~swarmmap.services.learner.codec.StateCodec` turns a Link into a Transport;
   :class:`~swarmmap.services.learner.faults.FaultyTransport` sits between the two.
 
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Generic, Literal, Protocol, TypeVar
 import numpy as np
 
 if TYPE_CHECKING:
-    from swarmmap.shared.protocol import State, StateBody
+    from swarmmap.shared.wire.protocol import State, StateBody
 
 Kind = Literal["state", "complete"]
 

@@ -8,7 +8,7 @@ beyond that is dropped, counted and logged once. The neighbours' ``exchange`` li
 tokens tell the exchange when one has left.
 
 No copies of a vector beyond Zenoh's own: the node writes its State into a
-:class:`~swarmmap.shared.protocol.StateFrame` (:meth:`ZenohTransport.new_state`), which is sent
+:class:`~swarmmap.shared.wire.protocol.StateFrame` (:meth:`ZenohTransport.new_state`), which is sent
 as it is, and a neighbour's State reaches Algorithm 1 as a read-only view of the received
 payload. A :class:`~swarmmap.services.learner.codec.StateCodec` makes it Algorithm 1's transport.
 """
@@ -21,14 +21,15 @@ import threading
 import numpy as np
 
 from swarmmap.services.learner.transport import Delivery, Inbox
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.protocol import ProtocolError, RoundComplete, State, StateBody, StateFrame, encode_state
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.codec import StateFrame, encode_state
+from swarmmap.shared.wire.protocol import ProtocolError, RoundComplete, State, StateBody
 
 log = logging.getLogger("learner")
 
 
 class ZenohTransport:
-    """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.bus.Bus` (a Link).
+    """One learner's end of Algorithm 1 over a :class:`~swarmmap.shared.wire.bus.Bus` (a Link).
     States of another size than ``state_size`` are refused."""
 
     def __init__(self, bus: Bus, node: int, neighbours: set[int], state_size: int, inbox_limit: int = 64):
@@ -81,7 +82,7 @@ class ZenohTransport:
             self.state_pub.put_bytes(frame.stamp(round))
 
     def send_body(self, round: int, body: StateBody) -> None:
-        """A State of another encoding (:mod:`~swarmmap.shared.compression`), or with a position or coverage."""
+        """A State of another encoding (:mod:`~swarmmap.shared.wire.compression`), or with a position or coverage."""
         self.state_pub.put(body.state(self.run, self.node, round))
 
     def send_round_complete(self, round: int) -> None:

@@ -5,7 +5,7 @@ container runs it, see deploy/docker/entrypoint.sh; it runs no service and joins
 session): from the same environment as every service, it checks the run directory as ``swarmmap up`` does (a
 finished run: refused; one that did not finish: resumed with ``SWARMMAP_UP__RESUME=true`` when its
 settings are the same, refused otherwise), writes the run's ``config.yaml``, makes the run's CA (its key in
-this process's memory only: :class:`~swarmmap.shared.secrets.Signer`), forgets the claims of
+this process's memory only: :class:`~swarmmap.shared.wire.secrets.Signer`), forgets the claims of
 the containers of an earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or
 why not), which every other container of the run reads before it starts its service. Then it
 signs each service's certificate (each container makes its own key and asks for the identity
@@ -22,12 +22,12 @@ import threading
 import time
 from pathlib import Path
 
-from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.claims import CLAIMS_ENV, forget_claims
-from swarmmap.shared.config import ConfigError, RunConfig, resolve
-from swarmmap.shared.runtime import setup_logging, shutdown_event
-from swarmmap.shared.secrets import Signer, router_names
-from swarmmap.shared.services import identities
+from swarmmap.shared.run.atomic import atomic_write_text
+from swarmmap.shared.run.config import ConfigError, RunConfig, resolve
+from swarmmap.shared.run.runtime import setup_logging, shutdown_event
+from swarmmap.shared.wire.claims import CLAIMS_ENV, forget_claims
+from swarmmap.shared.wire.secrets import Signer, router_names
+from swarmmap.shared.wire.services import identities
 
 SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 
@@ -99,8 +99,8 @@ def begin(environ: dict[str, str]) -> RunConfig:
     """The checks and writes of the start of a run; returns its config, or raises ConfigError
     naming what is wrong."""
     from swarmmap.services.up.launcher import WayOut, prepare, run_dir_problem, write_config
-    from swarmmap.shared.floorplan import PlanError
-    from swarmmap.shared.recording import RecordingError
+    from swarmmap.shared.world.floorplan import PlanError
+    from swarmmap.shared.world.recording import RecordingError
 
     cfg = resolve(environ=environ)
     setup_logging(cfg.log_level, "start")

@@ -17,9 +17,9 @@ import time
 from pathlib import Path
 from typing import TextIO
 
-from swarmmap.shared.config import STD_MODELS
-from swarmmap.shared.progress import PROGRESS_EVERY_S, duration
-from swarmmap.shared.rundir import config_doc, read_summary
+from swarmmap.shared.run.config import STD_MODELS
+from swarmmap.shared.run.progress import PROGRESS_EVERY_S, duration
+from swarmmap.shared.run.rundir import config_doc, read_summary
 
 log = logging.getLogger("up")
 

@@ -51,22 +51,22 @@ import yaml
 from swarmmap.services.up.console import Console, closing_block
 from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
 from swarmmap.services.up.preflight import PlanFacts, check_run
-from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import ConfigError, RunConfig, fail, validate_config
-from swarmmap.shared.disk import disk_words
-from swarmmap.shared.fingerprint import fingerprint_diff, settings_fingerprint
-from swarmmap.shared.floorplan import PlanError
-from swarmmap.shared.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
-from swarmmap.shared.plans import plan_reference
-from swarmmap.shared.progress import TeamProgress, TraversalProgress
-from swarmmap.shared.protocol import Keys, Metrics, RunDone, Scan
-from swarmmap.shared.recording import RecordingError, read_recording
-from swarmmap.shared.rundir import config_doc, local_time, read_summary, run_state
-from swarmmap.shared.runtime import die_with_parent
-from swarmmap.shared.secrets import SecretsError, router_names, write_credentials
-from swarmmap.shared.services import identities, kinds, started_by_up
-from swarmmap.shared.slots import slots_dir
+from swarmmap.shared.run.atomic import atomic_write_text
+from swarmmap.shared.run.config import ConfigError, RunConfig, fail, validate_config
+from swarmmap.shared.run.disk import disk_words
+from swarmmap.shared.run.fingerprint import fingerprint_diff, settings_fingerprint
+from swarmmap.shared.run.progress import TeamProgress, TraversalProgress
+from swarmmap.shared.run.rundir import config_doc, local_time, read_summary, run_state
+from swarmmap.shared.run.runtime import die_with_parent
+from swarmmap.shared.run.slots import slots_dir
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
+from swarmmap.shared.wire.protocol import Keys, Metrics, RunDone, Scan
+from swarmmap.shared.wire.secrets import SecretsError, router_names, write_credentials
+from swarmmap.shared.wire.services import identities, kinds, started_by_up
+from swarmmap.shared.world.floorplan import PlanError
+from swarmmap.shared.world.plans import plan_reference
+from swarmmap.shared.world.recording import RecordingError, read_recording
 
 log = logging.getLogger("up")
 
@@ -132,7 +132,7 @@ def write_config(cfg: RunConfig, router_endpoints: list[str] | None = None) -> P
 
 def write_run_secrets(cfg: RunConfig, router_endpoints: list[str] | None = None) -> None:
     """The run's credentials in ``zenoh.secrets``: a folder per service with its own key, its
-    certificate and the run's CA certificate (shared/secrets.py); the routers' certificates
+    certificate and the run's CA certificate (shared/wire/secrets.py); the routers' certificates
     name the hosts of ``zenoh.connect`` and of ``router_endpoints`` (where the routers of a
     run with a router per host reach each other). The CA key is discarded once they are
     issued, or kept in ``zenoh.keep_ca``, which must lie outside what services read."""
@@ -194,7 +194,7 @@ class Launcher:
                                              "listen": ["tcp/127.0.0.1:0"], "multicast_scouting": False})
         cfg = cfg.model_copy(update={"zenoh": zenoh})
         if cfg.learner.compute_slots is None and cfg.learner.transport == "zenoh" and cfg.robots > (cores := host_cores()):
-            # every learner on this host, more than its cores: each round's training in turns, not sliced (shared/slots.py)
+            # every learner on this host, more than its cores: each round's training in turns, not sliced (shared/run/slots.py)
             cfg = cfg.model_copy(update={"learner": cfg.learner.model_copy(update={"compute_slots": cores})})
         self.cfg = prepare(cfg)
         self.run_dir = self.cfg.run_dir
@@ -214,7 +214,7 @@ class Launcher:
             self.plan_hosts()
 
     def plan_hosts(self) -> None:
-        """A router per host (shared/mesh.py): on loopback ports, or with ``up.netns`` on the
+        """A router per host (shared/wire/mesh.py): on loopback ports, or with ``up.netns`` on the
         addresses of the run's network (services/up/netns.py)."""
         cfg, base_port = self.cfg, int(self.router_endpoint.rsplit(":", 1)[1])
         hosts = host_names(cfg.robots)
@@ -396,7 +396,7 @@ class Launcher:
         log.info("run directory: %s", self.run_dir)
 
     def start_services(self, bus: Bus, t0: float) -> Child:
-        """Start the run's services in the registry's order (swarmmap.shared.services: the recorder,
+        """Start the run's services in the registry's order (swarmmap.shared.wire.services: the recorder,
         the observer, the learners, the lidar streamers, the world, then any other kind up starts)
         and wait until those that must be are alive (the world builds its plan meanwhile and drives
         once they are: ``world.wait_for``); returns the service that ends the run (the recorder)."""
@@ -615,7 +615,7 @@ class WayOut:
 def run_dir_problem(cfg: RunConfig, ways: WayOut = WayOut()) -> str | None:
     """Why ``cfg.run_dir`` cannot take this run, naming the way out; None when it can. A finished
     run is never overwritten; an interrupted one is resumed only when asked (``up.resume``), and
-    only by a run with its settings (:func:`~swarmmap.shared.fingerprint.settings_fingerprint`)."""
+    only by a run with its settings (:func:`~swarmmap.shared.run.fingerprint.settings_fingerprint`)."""
     run_dir, state = cfg.run_dir, run_state(cfg.run_dir)
     if state == "new":
         if cfg.up.resume:

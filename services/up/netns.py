@@ -1,6 +1,6 @@
 """Hosts on one machine: each robot's services in a network namespace of its own (``up --netns``).
 
-A team of N robots gets N+1 hosts (shared/mesh.py): the base host is this machine's own network
+A team of N robots gets N+1 hosts (shared/wire/mesh.py): the base host is this machine's own network
 stack (the world, the recorder, the observer and ``up``, so the viewer stays on loopback), and
 each robot host ``r<i>`` a namespace ``swarmmap-<tag>-r<i>`` (``tag``: six hex digits of the
 run id). They are joined by a bridge that lives in a namespace of its own, the switch
@@ -39,8 +39,8 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from swarmmap.shared.atomic import atomic_write_text
-from swarmmap.shared.mesh import BASE, host_names
+from swarmmap.shared.run.atomic import atomic_write_text
+from swarmmap.shared.wire.mesh import BASE, host_names
 
 log = logging.getLogger("netns")
 STATE_FILE = "network.json"

@@ -16,8 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from swarmmap.shared.config import ConfigError, RunConfig, ZenohSettings, did_you_mean
-from swarmmap.shared.disk import existing, write_problem
+from swarmmap.shared.run.config import ConfigError, RunConfig, ZenohSettings, did_you_mean
+from swarmmap.shared.run.disk import existing, write_problem
 
 # Zenoh's link protocols, and those whose address is host:port.
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
@@ -81,7 +81,7 @@ def zenoh_problems(z: ZenohSettings, endpoints: bool) -> list[str]:
         return problems
     import zenoh
 
-    from swarmmap.shared.bus import zenoh_config
+    from swarmmap.shared.wire.bus import zenoh_config
 
     try:  # Zenoh's own reading of the file and endpoints (security is checked as the services start)
         zenoh_config(z.model_copy(update={"insecure": True}), "up")
@@ -142,8 +142,8 @@ def plan_hint(spec: str) -> str:
 def plan_facts(cfg: RunConfig) -> PlanFacts:
     """Load the run's plan and, when the world drives, its paths, as the world will; raises
     PlanError naming the file and the problem."""
-    from swarmmap.shared.paths import coverage, path_length
-    from swarmmap.shared.plans import load_floorplan, robot_paths
+    from swarmmap.shared.world.paths import coverage, path_length
+    from swarmmap.shared.world.plans import load_floorplan, robot_paths
 
     w = cfg.world
     plan = load_floorplan(w.floorplan, w, cfg.seed)
@@ -162,7 +162,8 @@ def dataset_facts(cfg: RunConfig) -> PlanFacts:
     """Read the run's logs and cut them into robots as the world will; raises DatasetError."""
     import numpy as np
 
-    from swarmmap.shared.datasets import BagTopics, read_log, split_team
+    from swarmmap.shared.world.datasets import BagTopics, read_log
+    from swarmmap.shared.world.teams import split_team
 
     w = cfg.world
     logs = [read_log(p, w.dataset_pose, BagTopics(w.dataset_scan_topic, w.dataset_odom_topic, w.dataset_fixed_frame))
@@ -180,7 +181,7 @@ def check_run(cfg: RunConfig, *, endpoints: bool, observer: bool = True) -> Plan
     """Every check above on the prepared ``cfg``; returns what the plan looks like, or raises
     one ConfigError listing every problem. ``endpoints``: the run uses the configured Zenoh
     endpoints (prepare; up puts its own loopback ones in); ``observer``: one will run."""
-    from swarmmap.shared.floorplan import PlanError
+    from swarmmap.shared.world.floorplan import PlanError
 
     problems = zenoh_problems(cfg.zenoh, endpoints)
     problems += [p for where, name in (("learner.device", cfg.learner.device),
@@ -194,7 +195,7 @@ def check_run(cfg: RunConfig, *, endpoints: bool, observer: bool = True) -> Plan
         problems.append(f"learner.graph_file: {cfg.learner.graph_file} does not exist; name a YAML/JSON list of [i, j] edges")
     facts = None
     if cfg.world.dataset:
-        from swarmmap.shared.datasets import DatasetError
+        from swarmmap.shared.world.datasets import DatasetError
 
         try:
             facts = dataset_facts(cfg)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 
-from swarmmap.shared.config import RunConfig
+from swarmmap.shared.run.config import RunConfig
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:

@@ -1,7 +1,7 @@
 """The world of a run on real LiDAR logs (``world.dataset``): the logs' scans instead of a simulation.
 
 Started as the world service (``swarmmap world`` with ``world.dataset`` set). It reads the logs
-(:mod:`swarmmap.shared.datasets`: CARMEN logs, ROS 1 bags, rosbag2 folders, ``.mcap``), cuts them
+(:mod:`swarmmap.shared.world.datasets`: CARMEN logs, ROS 1 bags, rosbag2 folders, ``.mcap``), cuts them
 into one contiguous segment per robot, holds every ``world.dataset_holdout_every``-th scan of
 each robot out, and serves on ``world/map`` what a run needs of a world: the map's extent (every
 hit within ``world.lidar_max_range_m`` and every pose, plus ``world.dataset_margin_m``), the
@@ -22,10 +22,12 @@ import time
 import numpy as np
 
 from swarmmap.services.world.session import serving
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.datasets import BagTopics, DatasetError, Team, make_team, read_log
-from swarmmap.shared.logodds import bce
-from swarmmap.shared.protocol import Scan, Tensor, WorldMap, encode
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.codec import encode
+from swarmmap.shared.wire.protocol import Scan, Tensor, WorldMap
+from swarmmap.shared.world.datasets import BagTopics, DatasetError, read_log
+from swarmmap.shared.world.logodds import bce
+from swarmmap.shared.world.teams import Team, make_team
 
 log = logging.getLogger("world")
 

@@ -10,9 +10,9 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.protocol import Keys
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.protocol import Keys
 
 log = logging.getLogger("world")
 

@@ -31,14 +31,15 @@ from scipy import ndimage
 
 from swarmmap.services.world.robot import LIDAR_LINK, write_urdf
 from swarmmap.services.world.session import serving
-from swarmmap.shared.atomic import atomic_write_bytes, save_png
-from swarmmap.shared.config import RunConfig, WorldSettings
-from swarmmap.shared.floorplan import FloorPlan, OccupancyGrid, PlanError
-from swarmmap.shared.mapfiles import save_ros_map, trinary_pixels
-from swarmmap.shared.paths import coverage, path_length, point_along
-from swarmmap.shared.plans import load_floorplan, robot_paths
-from swarmmap.shared.protocol import Scan, Tensor, WorldMap, encode
-from swarmmap.shared.sensing import beam_angles, validation_recipe, validation_set
+from swarmmap.shared.run.atomic import atomic_write_bytes, save_png
+from swarmmap.shared.run.config import RunConfig, WorldSettings
+from swarmmap.shared.run.mapfiles import save_ros_map, trinary_pixels
+from swarmmap.shared.wire.codec import encode
+from swarmmap.shared.wire.protocol import Scan, Tensor, WorldMap
+from swarmmap.shared.world.floorplan import FloorPlan, OccupancyGrid, PlanError
+from swarmmap.shared.world.paths import coverage, path_length, point_along
+from swarmmap.shared.world.plans import load_floorplan, robot_paths
+from swarmmap.shared.world.sensing import beam_angles, validation_recipe, validation_set
 
 log = logging.getLogger("world")
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from cryptography import x509
 
-from swarmmap.shared.services import identities
+from swarmmap.shared.wire.services import identities
 from tests.conftest import REPO, recording_entities, wait_until
 from tests.deploy.conftest import VENV_BIN, run_kit
 

@@ -22,7 +22,7 @@ from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
-from swarmmap.shared.datasets import read_log
+from swarmmap.shared.world.datasets import read_log
 
 
 def main() -> None:

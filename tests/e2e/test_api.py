@@ -8,7 +8,7 @@ import re
 import pytest
 
 from swarmmap.shared.api import RunError, open_run, run
-from swarmmap.shared.config import ConfigError
+from swarmmap.shared.run.config import ConfigError
 from tests.conftest import REPO
 
 pytestmark = pytest.mark.e2e

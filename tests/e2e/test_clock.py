@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from swarmmap.shared.networks import load_model
+from swarmmap.shared.learning.networks import load_model
 from tests.harness import kill_at_round, leftovers, up
 
 pytestmark = [pytest.mark.e2e, pytest.mark.faults]  # a fault trial (a learner killed): the faults tier

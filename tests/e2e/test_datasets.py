@@ -9,9 +9,10 @@ import subprocess
 import numpy as np
 import pytest
 
-from swarmmap.shared.config import resolve
-from swarmmap.shared.datasets import make_team, read_log, write_rosbag
-from swarmmap.shared.sensing import beam_samples
+from swarmmap.shared.run.config import resolve
+from swarmmap.shared.world.datasets import read_log, write_rosbag
+from swarmmap.shared.world.sensing import beam_samples
+from swarmmap.shared.world.teams import make_team
 from tests.conftest import KIT_DATA, SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e

@@ -10,7 +10,7 @@ import subprocess
 import pytest
 import torch
 
-from swarmmap.shared.networks import load_model
+from swarmmap.shared.learning.networks import load_model
 from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.plans import load_floorplan
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.world.plans import load_floorplan
 from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.e2e

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from swarmmap.shared.datasets import read_log
+from swarmmap.shared.world.datasets import read_log
 from tests.conftest import KIT_DATA, REPO, clean_env
 
 pytestmark = pytest.mark.e2e
@@ -119,8 +119,8 @@ def test_a_service_from_another_package_gets_its_identity_rules_command_and_plac
     """Registered by one entry point: the identity and access rules come from its declaration,
     `swarmmap heartbeat` is a command, and the SLURM job (which starts a step per line of
     `swarmmap services --slurm`) and `up` (below) start it."""
-    code = ("from swarmmap.shared.protocol import Keys; from swarmmap.shared.secrets import access_policy; "
-            "from swarmmap.shared.services import identities; import json; "
+    code = ("from swarmmap.shared.wire.protocol import Keys; from swarmmap.shared.wire.secrets import access_policy; "
+            "from swarmmap.shared.wire.services import identities; import json; "
             "p = access_policy(Keys('swarmmap', 'r1'), 2); "
             "print(json.dumps([identities(2), [r for r in p['rules'] if r['id'].startswith('heartbeat-0')]]))")
     proc = subprocess.run([str(venv), "-c", code], capture_output=True, text=True, check=True, env=clean_env())

@@ -18,13 +18,13 @@ import yaml
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import ConfigError, RunConfig
-from swarmmap.shared.models import param_count
-from swarmmap.shared.networks import build_network
-from swarmmap.shared.protocol import Keys, State, Tensor
-from swarmmap.shared.secrets import CA_FILE, CERT_FILE, KEY_FILE, own_folder, router_names, write_credentials
-from swarmmap.shared.services import identities
+from swarmmap.shared.learning.models import param_count
+from swarmmap.shared.learning.networks import build_network
+from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.protocol import Keys, State, Tensor
+from swarmmap.shared.wire.secrets import CA_FILE, CERT_FILE, KEY_FILE, own_folder, router_names, write_credentials
+from swarmmap.shared.wire.services import identities
 from tests.conftest import SWARMMAP, clean_env, wait_until
 from tests.harness import final_losses
 

@@ -19,9 +19,9 @@ import yaml
 from PIL import Image
 
 from swarmmap.services.world.simulation import build_plan
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.models import predict
-from swarmmap.shared.networks import load_model
+from swarmmap.shared.learning.models import predict
+from swarmmap.shared.learning.networks import load_model
+from swarmmap.shared.run.config import RunConfig
 from tests.conftest import PROMPT_S, SWARMMAP, clean_env, wait_until
 from tests.e2e.mapcheck import observed_agreement
 

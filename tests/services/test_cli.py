@@ -11,7 +11,8 @@ from importlib import metadata
 import pytest
 
 from swarmmap.services.cli import build_parser, descriptions
-from swarmmap.shared.config import DEFAULT_PRESET, config_from_args, resolve
+from swarmmap.shared.run.config import DEFAULT_PRESET, resolve
+from swarmmap.shared.run.flags import config_from_args
 from tests.conftest import SWARMMAP, clean_env
 
 pytestmark = pytest.mark.timeout(60)

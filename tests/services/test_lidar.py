@@ -10,9 +10,9 @@ import subprocess
 import numpy as np
 import pytest
 
-from swarmmap.shared.bus import Bus
-from swarmmap.shared.config import ZenohSettings
-from swarmmap.shared.protocol import Keys, Scan, Tensor
+from swarmmap.shared.run.config import ZenohSettings
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.protocol import Keys, Scan, Tensor
 from tests.conftest import SWARMMAP, clean_env, free_port, wait_until
 
 BEAMS, SCANS = 4096, 2000  # 37 kB a scan, 74 MB in all (an unbounded inbox grew by 91 MB here, a bounded one by 22)
@@ -63,7 +63,7 @@ def test_points_of_scans_that_come_before_the_learners_subscription_is_known_are
     """A learner's subscription can reach the streamer after the world has started driving: the
     samples of the first scans wait for it (Zenoh drops what no known subscriber matches). Here
     the learner subscribes only after ten scans were served: it still gets all twenty."""
-    from swarmmap.shared.protocol import Samples
+    from swarmmap.shared.wire.protocol import Samples
 
     port = free_port()
     log_path = tmp_path / "lidar.log"

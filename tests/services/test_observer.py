@@ -15,8 +15,8 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from swarmmap.services.observer import Observer, blueprint, open_sinks
-from swarmmap.shared.config import resolve
-from swarmmap.shared.protocol import State, Tensor
+from swarmmap.shared.run.config import resolve
+from swarmmap.shared.wire.protocol import State, Tensor
 from tests.conftest import SWARMMAP, clean_env, free_port, recording_entities, wait_until
 
 
@@ -140,7 +140,7 @@ def test_the_worlds_unknown_cells_reach_the_sinks_as_unknown_at_the_observers_re
     0.1 m cells: the unknown stays unknown (a rosbag2's ``/reference`` holds -1 there, not a wall)."""
     import torch
 
-    from swarmmap.shared.protocol import WorldMap
+    from swarmmap.shared.wire.protocol import WorldMap
 
     class Sink:
         def world(self, resolution, origin, shape, reference):

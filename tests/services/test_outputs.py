@@ -8,8 +8,8 @@ import yaml
 
 from swarmmap.services.learner.outputs import write_outputs
 from swarmmap.services.world.simulation import build_plan, world_map_message
-from swarmmap.shared.config import resolve
-from swarmmap.shared.networks import build_network
+from swarmmap.shared.learning.networks import build_network
+from swarmmap.shared.run.config import resolve
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import csv
 
 from swarmmap.services.recorder import MetricsRecorder, RunTracker, draw_overview
-from swarmmap.shared.config import RunConfig
-from swarmmap.shared.protocol import Metrics
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.protocol import Metrics
 
 
 def metrics(robot: int, rnd: int, final: bool = False) -> Metrics:
@@ -130,7 +130,7 @@ def test_a_resumed_metrics_file_goes_on_after_its_rows_and_writes_none_twice(tmp
 
 def test_the_summary_of_a_resumed_run_keeps_its_start_and_adds_up_the_wall_time(tmp_path):
     from swarmmap.services.recorder import summary
-    from swarmmap.shared.config import resolve
+    from swarmmap.shared.run.config import resolve
 
     cfg = resolve({"robots": 1}, environ={})
     rec = MetricsRecorder(tmp_path / "metrics.csv")
@@ -224,7 +224,7 @@ def test_the_summary_says_when_the_run_started_and_finished(tmp_path):
     import time
 
     from swarmmap.services.recorder import summary
-    from swarmmap.shared.config import resolve
+    from swarmmap.shared.run.config import resolve
 
     rec = MetricsRecorder(tmp_path / "metrics.csv")
     doc = summary(resolve({"robots": 1}, environ={}), rec, True, "all 1 learners finished", 30.0, started=1000.0)

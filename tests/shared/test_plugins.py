@@ -12,9 +12,9 @@ import pytest
 from swarmmap.services.learner.consensus import consensus_rule
 from swarmmap.services.learner.settings import ConsensusSettings
 from swarmmap.shared import plugins
-from swarmmap.shared.config import ConfigError, apply_override, resolve
-from swarmmap.shared.datasets import DatasetError, read_log
-from swarmmap.shared.fingerprint import settings_fingerprint
+from swarmmap.shared.run.config import ConfigError, apply_override, resolve
+from swarmmap.shared.run.fingerprint import settings_fingerprint
+from swarmmap.shared.world.datasets import DatasetError, read_log
 
 RULE = '''
 from pydantic import BaseModel
@@ -43,7 +43,7 @@ NOT_A_SPEC = 42
 
 def _read(path, pose, topics):
     import numpy as np
-    from swarmmap.shared.datasets import LaserLog
+    from swarmmap.shared.world.datasets import LaserLog
     a = np.loadtxt(path, delimiter=",", ndmin=2)
     return LaserLog(str(path), a[:, 0], a[:, 1:4], np.linspace(-1.5, 1.5, a.shape[1] - 4), a[:, 4:], 10.0)
 

@@ -8,7 +8,7 @@ import yaml
 
 from swarmmap.services.experiments.common import same_settings
 from swarmmap.services.up.launcher import prepare
-from swarmmap.shared.config import resolve
+from swarmmap.shared.run.config import resolve
 
 
 def write_run(run_dir, cfg, drop=()):

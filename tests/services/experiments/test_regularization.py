@@ -7,7 +7,7 @@ import argparse
 import pytest
 
 from swarmmap.services.experiments.regularization import parse_shape, regularization_cells
-from swarmmap.shared.config import ConfigError, resolve
+from swarmmap.shared.run.config import ConfigError, resolve
 
 
 def test_shapes_parse_as_typed_and_nonsense_is_refused_naming_the_flag():

@@ -8,8 +8,8 @@ import pytest
 
 from swarmmap.services.learner.checkpoints import Checkpoints
 from swarmmap.services.learner.errors import LearnerError
-from swarmmap.shared.config import resolve
-from swarmmap.shared.fingerprint import settings_fingerprint
+from swarmmap.shared.run.config import resolve
+from swarmmap.shared.run.fingerprint import settings_fingerprint
 
 
 def written(folder, **cli) -> Checkpoints:

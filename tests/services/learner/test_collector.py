@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.services.learner.collector import Collector
-from swarmmap.shared.protocol import Samples, Tensor
+from swarmmap.shared.wire.protocol import Samples, Tensor
 
 
 def samples(seq: int, last: bool = False) -> Samples:

@@ -1,0 +1,67 @@
+"""Real Zenoh sessions on free loopback ports: State exchange, refusal of bad payloads, and
+Algorithm 1 between two OS processes giving the reference result."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.codec import encode
+from swarmmap.shared.wire.protocol import Keys, ProtocolError, State, Tensor
+from tests.conftest import wait_until
+
+HERE = Path(__file__).parent
+
+
+def three_params(msg: State) -> None:
+    if msg.params.shape != [3]:
+        raise ProtocolError("shape", f"expected 3 parameters, got {msg.params.shape}")
+
+
+@pytest.mark.integration
+def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
+    a_settings, b_settings = zenoh_pair
+    keys = Keys("swarmmap", run_id)
+    got: list[State] = []
+    with Bus.open(a_settings, keys, "learner", 0) as a, Bus.open(b_settings, keys, "learner", 1) as b:
+        b.subscribe(keys.state(0), State, got.append, check=three_params)
+        b.announce()
+        assert wait_until(lambda: ("learner", "1") in a.alive("learner"), 10)
+        pub = a.publisher(keys.state(0))
+        raw = a.session.declare_publisher(keys.state(0))
+        good = np.array([1.5, -2.0, 3.25], np.float32)
+        raw.put(b"\x00garbage")
+        raw.put(encode(State(run="other-run", sender=0, round=0, params=Tensor.of(good))))
+        raw.put(encode(State(run=run_id, sender=5, round=0, params=Tensor.of(good))))  # speaks for robot 5
+        raw.put(encode(State(run=run_id, sender=0, round=0, params=Tensor.of(np.zeros(4, np.float32)))))
+        doc = State(run=run_id, sender=0, round=0, params=Tensor.of(good)).model_dump()
+        doc["params"]["data"] = np.array([1, np.inf, 2], np.float32).tobytes()
+        raw.put(msgpack.packb(doc))
+        pub.put(State(run=run_id, sender=0, round=4, params=Tensor.of(good)))
+        assert wait_until(lambda: len(got) == 1, 10)
+        assert got[0].round == 4 and got[0].params.numpy().tolist() == good.tolist()
+        assert wait_until(lambda: sum(b.dropped.values()) == 5, 5)
+        assert dict(b.dropped) == {"malformed": 1, "wrong-run": 1, "unknown-sender": 1, "shape": 1, "non-finite": 1}
+        assert a.sent.bytes_where(lambda k: k.endswith("/state")) > 0
+
+
+@pytest.mark.integration
+def test_algorithm1_between_two_processes_matches_reference(zenoh_pair, run_id, tmp_path):
+    rounds = 8
+    procs = []
+    for node, settings in enumerate(zenoh_pair):
+        procs.append(subprocess.Popen([sys.executable, str(HERE / "a1_node.py"), str(node), str(rounds), run_id,
+                                       settings.model_dump_json(), str(tmp_path / f"{node}.npy")]))
+    for p in procs:
+        assert p.wait(timeout=90) == 0
+    thetas = {i: np.full(4, float(i), np.float32) for i in (0, 1)}
+    for k in range(rounds):
+        thetas = {i: ((thetas[i] + thetas[1 - i]) / 2 + 0.01 * (k + 1) * (i + 1)).astype(np.float32) for i in (0, 1)}
+    for i in (0, 1):
+        np.testing.assert_array_equal(np.load(tmp_path / f"{i}.npy"), thetas[i])
