@@ -1,4 +1,4 @@
-"""Parts found by name through Python entry points: consensus rules, dataset readers and services.
+"""Parts found by name through Python entry points: consensus rules, dataset readers, services and attacks.
 
 swarmmap's own parts are registered the same way as anyone's, in its ``pyproject.toml``; a
 package of one's own adds a part without touching swarmmap by declaring an entry point in the
@@ -72,6 +72,23 @@ class DatasetReader:
 
 
 @dataclass(frozen=True)
+class AttackPlugin:
+    """A hostile member's lie (``faults.attack``, for tests, the bench and research on robust consensus).
+
+    ``lie(liar, theta)`` rewrites ``theta``, the attacker's honest parameters of the round (a float32
+    view: write into it), given ``liar`` (services/learner/attacks.py's Liar: its seeded ``rng``, a
+    ``direction(n)``, the ``rho`` mask of a Bayesian network's spreads, the ``out`` layer's indices);
+    None for an attack that changes no value; ``sends``: ``lie`` (the lie instead of the State),
+    ``both`` (the honest State and the lie: two stories a round) or ``nothing`` (RoundCompletes,
+    never a State); ``models``: the learner models it applies to (None: any)."""
+
+    lie: Callable[[Any, Any], None] | None
+    summary: str
+    sends: str = "lie"
+    models: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
 class Group:
     """A kind of part: its entry-point group, what names one, and its spec type (``module:Class``,
     imported when a part is checked: a spec type may live in a module that uses this one)."""
@@ -91,7 +108,8 @@ class Group:
 
 GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", "swarmmap.shared.plugins:ConsensusPlugin"),
                               Group("datasets", "world.dataset", "swarmmap.shared.plugins:DatasetReader"),
-                              Group("services", "service", "swarmmap.shared.wire.services:ServiceKind"))}
+                              Group("services", "service", "swarmmap.shared.wire.services:ServiceKind"),
+                              Group("attacks", "faults.attack", "swarmmap.shared.plugins:AttackPlugin"))}
 
 
 @dataclass(frozen=True)
@@ -217,7 +235,7 @@ def report() -> tuple[list[str], int]:
                     find(group.name, plugin.name)
                 spec = load(group.name, plugin.name)
                 what = spec.describe if isinstance(spec, DatasetReader) else spec.summary
-                if isinstance(spec, ConsensusPlugin) and spec.models:
+                if isinstance(spec, (ConsensusPlugin, AttackPlugin)) and spec.models:
                     what += f" (model {' or '.join(spec.models)})"
             except PluginError as exc:
                 refused += 1

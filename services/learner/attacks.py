@@ -14,6 +14,9 @@ parameters of the round (a tracker or counts after them are sent as they are):
   and its means moved by 0.3 of their norm in a random direction;
 - ``stall``: RoundCompletes, but never a State;
 - ``equivocate``: two States for every round, the honest one and a ratchet's.
+
+Each is a plug-in (an :class:`~swarmmap.shared.plugins.AttackPlugin` named in the entry-point group
+``swarmmap.attacks``); another package adds its own the same way.
 """
 
 from __future__ import annotations
@@ -25,9 +28,9 @@ import numpy as np
 from swarmmap.services.learner.transport import Envelope, Transport, plain_vector
 from swarmmap.shared.learning.bnn import is_rho
 from swarmmap.shared.learning.layout import StateLayout
+from swarmmap.shared.plugins import AttackPlugin, load
 
 log = logging.getLogger("learner")
-ATTACKS = ("none", "ratchet", "signflip", "scale", "noise", "sigma", "stall", "equivocate")
 
 
 def output_layer(layout: StateLayout) -> np.ndarray:
@@ -39,12 +42,12 @@ def output_layer(layout: StateLayout) -> np.ndarray:
 
 
 class Liar:
-    """What an attacker sends instead of its State ``v`` (its parameters first, as ``layout`` says)."""
+    """What an attacker sends instead of its State ``v`` (its parameters first, as ``layout`` says),
+    by the attack plug-in called ``attack`` (``faults.attack``)."""
 
     def __init__(self, attack: str, layout: StateLayout, seed: int):
-        if attack not in ATTACKS:
-            raise ValueError(f"unknown attack {attack!r}; known: {', '.join(ATTACKS)}")
         self.attack, self.layout = attack, layout
+        self.plugin = load("attacks", attack)
         self.rng = np.random.default_rng([seed, 4242])
         self.rho = np.zeros(layout.param_count, bool)
         for name, at, n in layout.tensors:
@@ -52,26 +55,50 @@ class Liar:
         self.out = output_layer(layout)
 
     def direction(self, n: int) -> np.ndarray:
+        """A random unit vector of ``n`` values (drawn from the attacker's seeded generator)."""
         u = self.rng.standard_normal(n)
         return u / max(float(np.linalg.norm(u)), 1e-12)
 
     def lie(self, v: np.ndarray) -> np.ndarray:
         out = np.array(v, dtype=np.float32, copy=True)
-        theta = out[: self.layout.param_count]  # a view: the attacks write the parameters only
-        norm = float(np.linalg.norm(theta))
-        if self.attack in ("ratchet", "equivocate"):
-            theta += (0.45 * norm * self.direction(theta.size)).astype(np.float32)
-        elif self.attack == "signflip":
-            theta[self.out] *= -1
-        elif self.attack == "scale":
-            theta *= 1.45
-        elif self.attack == "noise":
-            theta += (0.05 * norm / np.sqrt(theta.size) * self.rng.standard_normal(theta.size)).astype(np.float32)
-        elif self.attack == "sigma":
-            means = ~self.rho
-            theta[self.rho] -= 2.0
-            theta[means] += (0.3 * float(np.linalg.norm(theta[means])) * self.direction(int(means.sum()))).astype(np.float32)
+        if self.plugin.lie is not None:
+            self.plugin.lie(self, out[: self.layout.param_count])  # a view: the attacks write the parameters only
         return out
+
+
+# ----------------------------------------------------------------- swarmmap's own attacks (plug-ins)
+
+
+def _ratchet(liar: Liar, theta: np.ndarray) -> None:
+    theta += (0.45 * float(np.linalg.norm(theta)) * liar.direction(theta.size)).astype(np.float32)
+
+
+def _signflip(liar: Liar, theta: np.ndarray) -> None:
+    theta[liar.out] *= -1
+
+
+def _scale(liar: Liar, theta: np.ndarray) -> None:
+    theta *= 1.45
+
+
+def _noise(liar: Liar, theta: np.ndarray) -> None:
+    norm = float(np.linalg.norm(theta))
+    theta += (0.05 * norm / np.sqrt(theta.size) * liar.rng.standard_normal(theta.size)).astype(np.float32)
+
+
+def _sigma(liar: Liar, theta: np.ndarray) -> None:
+    means = ~liar.rho
+    theta[liar.rho] -= 2.0
+    theta[means] += (0.3 * float(np.linalg.norm(theta[means])) * liar.direction(int(means.sum()))).astype(np.float32)
+
+
+RATCHET = AttackPlugin(_ratchet, "a random direction at 0.45 of the norm, anew each round")
+SIGNFLIP = AttackPlugin(_signflip, "the output layer negated")
+SCALE = AttackPlugin(_scale, "the parameters x 1.45")
+NOISE = AttackPlugin(_noise, "Gaussian noise of 0.05 of the norm in all")
+SIGMA = AttackPlugin(_sigma, "false certainty: a Bayesian network's rho lowered by 2, its means moved", models=("bnn",))
+STALL = AttackPlugin(None, "RoundCompletes, never a State", sends="nothing")
+EQUIVOCATE = AttackPlugin(_ratchet, "two States a round: the honest one and a ratchet's", sends="both")
 
 
 class HostileTransport:
@@ -86,9 +113,10 @@ class HostileTransport:
     new_state = staticmethod(plain_vector)  # the honest State stays with the node; the lie is another vector
 
     def send_state(self, round: int, params: np.ndarray) -> None:
-        if self.attack == "stall":
+        sends = self.liar.plugin.sends
+        if sends == "nothing":
             return
-        if self.attack == "equivocate":
+        if sends == "both":
             self.inner.send_state(round, params)
         if round not in self.lies:
             self.lies = {r: v for r, v in self.lies.items() if r > round - 8}

@@ -25,6 +25,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
+from swarmmap.shared import plugins
 from swarmmap.shared.learning.layout import state_copies
 from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named where the config is
     MODEL_KINDS,
@@ -76,11 +77,17 @@ class RunConfig(Section):
         f = self.faults
         if any(not 0 <= r < self.robots for r in f.attackers):
             raise ValueError(f"faults.attackers {f.attackers}: robots are 0..{self.robots - 1}")
-        if f.attack == "sigma" and f.attackers and self.learner.model != "bnn":
-            raise ValueError("faults.attack sigma lies about a Bayesian network's rho: it needs learner.model bnn")
-        if f.attack == "equivocate" and f.attackers and self.learner.compression not in ("none", "f16", "bf16"):
-            raise ValueError("faults.attack equivocate sends two States a round: a compressed chain carries one (learner.compression "
-                             "none, f16 or bf16)")
+        if f.attack == "none" or not f.attackers:
+            return self
+        try:
+            attack = plugins.load("attacks", f.attack)
+        except plugins.PluginError as exc:
+            raise ValueError(str(exc)) from None
+        if attack.models is not None and self.learner.model not in attack.models:
+            raise ValueError(f"faults.attack {f.attack} ({attack.summary}): it needs learner.model {' or '.join(attack.models)}")
+        if attack.sends == "both" and self.learner.compression not in ("none", "f16", "bf16"):
+            raise ValueError(f"faults.attack {f.attack} sends two States a round: a compressed chain carries one "
+                             "(learner.compression none, f16 or bf16)")
         return self
 
     @model_validator(mode="after")

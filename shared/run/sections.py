@@ -442,13 +442,24 @@ class FaultSettings(Section):
     seed: int = Field(0, ge=0, description="seed of the fault draws")
     per_round: bool = Field(False, description="draw link_success once per link and round, for both directions and "
                                                "every message of the round (a radio link up or down), not per message")
-    attack: Literal["none", "ratchet", "signflip", "scale", "noise", "sigma", "stall", "equivocate"] = Field(
+    attack: str = Field(
         "none", description="what the robots of attackers tell their neighbours instead of their States (each with its "
-                            "own credentials): ratchet (a random direction at 0.45 of the norm, anew each round), signflip "
-                            "(the output layer negated), scale (x 1.45), noise (0.05 of the norm), sigma (a BNN's rho "
-                            "lowered by 2, its means moved), stall (RoundCompletes, never a State), equivocate (two "
-                            "States a round); see services/learner/attacks.py")
+                            "own credentials), an attack plug-in (swarmmap plugins lists those installed): ratchet (a random "
+                            "direction at 0.45 of the norm, anew each round), signflip (the output layer negated), scale "
+                            "(x 1.45), noise (0.05 of the norm), sigma (a BNN's rho lowered by 2, its means moved), stall "
+                            "(RoundCompletes, never a State), equivocate (two States a round); none: no attack; see "
+                            "services/learner/attacks.py")
     attackers: list[int] = Field(default_factory=list, description="the robots whose learners attack (attack); empty: none")
+
+    @field_validator("attack")
+    @classmethod
+    def _installed_attack(cls, value: str) -> str:
+        if value != "none":
+            try:
+                plugins.find("attacks", value)
+            except plugins.PluginError as exc:
+                raise ValueError(str(exc).removeprefix("faults.attack: ")) from None
+        return value
 
 
 class UpSettings(Section):

@@ -165,3 +165,26 @@ def test_a_dataset_reader_from_another_package_reads_its_format(install, tmp_pat
     (tmp_path / "x.unknown").write_text("")
     with pytest.raises(DatasetError, match=r"not a dataset swarmmap reads: give a test log \(\*.scans.txt\), .* or a ROS 1 bag"):
         read_log(tmp_path / "x.unknown")
+
+
+def test_an_attack_from_another_package_lies_as_it_says(install):
+    install("my-attacks", "0.2", {"swarmmap.attacks": {"halve": "my_attacks:HALVE", "mute": "my_attacks:MUTE"}}, "my_attacks", '''
+from swarmmap.shared.plugins import AttackPlugin
+
+def halve(liar, theta):
+    theta *= 0.5
+
+HALVE = AttackPlugin(halve, "every parameter halved", models=("fourier",))
+MUTE = AttackPlugin(None, "says nothing", sends="nothing")
+''')
+    from swarmmap.services.learner.attacks import Liar
+    from swarmmap.shared.learning.layout import StateLayout
+
+    layout = StateLayout(4, 2, tensors=(("0.weight", 0, 4),))
+    v = np.arange(8, dtype=np.float32)
+    assert Liar("halve", layout, 0).lie(v).tolist() == [0, 0.5, 1, 1.5, 4, 5, 6, 7]  # the parameters only
+    assert config("faults.attack=halve", "faults.attackers=[1]").faults.attack == "halve"
+    with pytest.raises(ConfigError, match=r"faults.attack halve \(every parameter halved\): it needs learner.model fourier"):
+        config("faults.attack=halve", "faults.attackers=[1]", "learner.model=bnn")
+    with pytest.raises(ConfigError, match=r"faults.attack.*no attacks plug-in is called 'halv'.*did you mean 'halve'"):
+        config("faults.attack=halv")
