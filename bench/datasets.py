@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
 
-from common import up_run  # noqa: E402
+from common import Runs, up_run  # noqa: E402
 
 from swarmmap.services.experiments.score import reference_row, score_run  # noqa: E402
 from tests.conftest import KIT_DATA  # noqa: E402
@@ -43,9 +43,11 @@ def main() -> int:
     base += ["--rounds", str(a.rounds)] if a.rounds else []
     a.out.mkdir(parents=True, exist_ok=True)
     rows, name = [], a.log.name.split(".")[0]
+    runs = Runs(len(CASES))
     for folder, (case, extra) in CASES.items():
         run_dir = a.out / folder
         summary = up_run(run_dir, base + extra)
+        runs.ended(folder)
         if not summary["ok"]:
             print(f"{case}: the run failed: {summary['reason']}", flush=True)
             continue

@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
 
-from common import up_run  # noqa: E402
+from common import Runs, up_run  # noqa: E402
 
 ATTACKS = ["ratchet", "signflip", "scale", "noise", "stall", "equivocate"]
 
@@ -57,12 +57,15 @@ def main() -> int:
     attacks = a.attacks or ATTACKS + (["sigma"] if a.bnn else [])
     case = f"{a.preset}, {a.robots} robots, {'BNN sigma' if a.bnn else 'FourierNet dinno'}, robust {'off' if a.no_robust else 'on'}"
     a.out.mkdir(parents=True, exist_ok=True)
+    runs = Runs(1 + len(attacks))
     clean, clean_s = run(a.out / "clean", args)
+    runs.ended("clean")
     reference, _ = honest(clean, a.hostile)
     print(f"clean run ({case}): honest robots' mean val_bce {reference:.4f}, {clean_s:.0f} s, ok {clean['ok']}", flush=True)
     worst = 0.0
     for attack in attacks:
         summary, wall = run(a.out / attack, args + ["--set", f"faults.attack={attack}", "--set", f"faults.attackers=[{a.hostile}]"])
+        runs.ended(attack)
         mean, refused = honest(summary, a.hostile)
         change = mean / reference - 1
         worst = max(worst, change)

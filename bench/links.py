@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
 
-from common import up_run  # noqa: E402
+from common import Runs, up_run  # noqa: E402
 
 # What each --compression case sets.
 ENCODINGS = {name: ["--set", f"learner.compression={name}"] for name in ("none", "f16", "bf16", "quant")}
@@ -64,10 +64,12 @@ def main() -> int:
     base += ["--robots", str(a.robots)] if a.robots else []
     a.out.mkdir(parents=True, exist_ok=True)
     reference, model = None, a.model or "the preset's model"
+    runs = Runs(len(a.compression) * len(a.rates))
     for compression in a.compression:
         for rate in a.rates:
             run_dir = a.out / f"{rate}-{compression}"
             summary = up_run(run_dir, base + ["--link-rate", rate, *ENCODINGS[compression]])
+            runs.ended(run_dir.name)
             per_round, mean, sent = figures(summary)
             reference = reference or (per_round, mean)
             case = (f"{a.preset} team ({summary['robots']} robots, {model}, {a.rounds} rounds), {rate} per robot link, "

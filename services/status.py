@@ -22,6 +22,7 @@ import zenoh
 
 from swarmmap.shared.run.config import ConfigError, RunConfig
 from swarmmap.shared.run.flags import config_from_args
+from swarmmap.shared.run.progress import eta_words, time_left
 from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, read_summary, summary_outcome
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import decode
@@ -110,7 +111,10 @@ def live_report(cfg: RunConfig, snap: Snapshot, window: float, run_dir: Path | N
         lines.append(f"  {service:<8} {ident:>3}  {rates or 'idle'}")
     rows = learner_rows(snap, run_dir)
     if rows:
-        lines.append(f"learners ({len(rows)} of {cfg.robots} reported, of {cfg.rounds()} rounds):")
+        slow = min(snap.metrics.values(), key=lambda m: m.round, default=None)  # the team's pace is its slowest learner's
+        eta = None if slow is None or slow.final else time_left(slow.round, cfg.rounds(), slow.wall_time_s)
+        lines.append(f"learners ({len(rows)} of {cfg.robots} reported, of {cfg.rounds()} rounds"
+                     f"{'' if eta is None else '; ' + eta_words(eta)}):")
         for robot, (rnd, val, final, source) in sorted(rows.items()):
             lines.append(f"  learner {robot:>3}  round {rnd:>5}  val_bce {val:.4f}{'  (final)' if final else ''}"
                          f"{'' if source == 'live' else '  (from metrics.csv)'}")

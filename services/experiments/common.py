@@ -17,6 +17,7 @@ import yaml
 from swarmmap.shared.run.config import ConfigError, RunConfig, apply_override, format_validation_error, resolve
 from swarmmap.shared.run.overview import map_extent, show
 from swarmmap.shared.run.overview import pyplot as _plt
+from swarmmap.shared.run.progress import duration, eta_words, time_left
 from swarmmap.shared.run.rundir import read_metrics, read_summary
 
 log = logging.getLogger("experiment")
@@ -56,11 +57,11 @@ class Progress:
             return None
         done = min(r[-1][0] for r in rows.values())
         loss = float(np.mean([r[-1][1] for r in rows.values()]))
-        frac = (self.done_runs + done / self.rounds) / self.total_runs
+        runs_done = self.done_runs + done / self.rounds
         elapsed = time.monotonic() - self.t0
-        left = f"about {elapsed * (1 - frac) / frac / 60:.1f} min left" if frac > 0.01 else "time left not known yet"
+        left = eta_words(time_left(runs_done, self.total_runs, elapsed, at_least=0.01 * self.total_runs))
         return (f"[{self.done_runs + 1}/{self.total_runs}] {self.label}: round {done}/{self.rounds}, "
-                f"val_bce {loss:.4f}, {elapsed / 60:.1f} min elapsed, {left}")
+                f"val_bce {loss:.4f}, {duration(elapsed)} elapsed, {left}")
 
     def _loop(self) -> None:
         while not self.stop.wait(self.every):

@@ -28,6 +28,20 @@ def duration(seconds: float) -> str:
     return f"{int(seconds // 3600)} h {int(seconds % 3600 // 60):02d} min"
 
 
+def time_left(done: float, total: float, seconds: float, at_least: float = 0.0) -> float | None:
+    """Seconds until ``total`` at the pace so far (``done`` of it in ``seconds``); None while too
+    little is done to tell (``done`` not above ``at_least``, or no time has passed). The one
+    estimate of time left: up's and the recorder's line, the experiments' and the benches' use it."""
+    if done <= at_least or seconds <= 0:
+        return None
+    return max(0.0, (total - done) * seconds / done)
+
+
+def eta_words(seconds: float | None) -> str:
+    """``ETA 41 s``, or that the time left is not known yet."""
+    return "time left not known yet" if seconds is None else f"ETA {duration(seconds)}"
+
+
 class TeamProgress:
     """The team's training at a glance: the slowest learner's round of ``rounds``, the mean,
     min and max of every learner's latest val_bce, and the time left at the slowest learner's
@@ -68,13 +82,9 @@ class TeamProgress:
                 return None
             slow = min(self.latest.values(), key=lambda m: m.round)
             t0, r0 = self._first_seen[slow.sender]
-            if slow.round > r0 and now > t0:
-                pace = (now - t0) / (slow.round - r0)  # seconds a round, as seen here (a resumed learner too)
-            elif slow.round > 0 and slow.wall_time_s > 0:
-                pace = slow.wall_time_s / slow.round  # its own clock since it started training
-            else:
-                return None
-            return max(0.0, (self.rounds - slow.round) * pace)
+        # its pace as seen here (a resumed learner too), else by its own clock since it started training
+        seen = time_left(slow.round - r0, self.rounds - r0, now - t0)
+        return seen if seen is not None else time_left(slow.round, self.rounds, slow.wall_time_s)
 
     def line(self, now: float | None = None) -> str | None:
         """``training: round 20 of 60 (33%), val_bce mean 0.2113 (min 0.2010, max 0.2254), ETA 41 s``;
@@ -92,7 +102,7 @@ class TeamProgress:
         if final:
             text += f", {final} of {self.robots} finished"
         eta = self.eta_s(now)
-        return text + (f", ETA {duration(eta)}" if eta is not None and final < self.robots else "")
+        return text + (f", {eta_words(eta)}" if eta is not None and final < self.robots else "")
 
 
 class TraversalProgress:

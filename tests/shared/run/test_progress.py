@@ -60,3 +60,13 @@ def test_the_traversal_line_counts_scans_and_robots_at_the_end_of_their_paths():
 
 def test_durations_read_as_people_write_them():
     assert [duration(s) for s in (41, 200, 3900)] == ["41 s", "3 min 20 s", "1 h 05 min"]
+
+
+def test_one_estimate_of_time_left_for_every_progress_line():
+    from swarmmap.shared.run.progress import eta_words, time_left
+
+    assert time_left(20, 100, 10.0) == 40.0  # 20 done in 10 s: 80 more take 40 s
+    assert time_left(0, 100, 10.0) is None and time_left(5, 100, 0.0) is None
+    assert time_left(0.5, 100, 10.0, at_least=1.0) is None  # too little done to tell
+    assert time_left(120, 100, 10.0) == 0.0
+    assert eta_words(200.0) == "ETA 3 min 20 s" and eta_words(None) == "time left not known yet"
