@@ -44,6 +44,15 @@ MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
 STD_MODELS = ("bnn", "dropout")
 
 
+def installed(group: str, name: str) -> str:
+    """``name`` when a part of ``group`` is installed under it, else a ValueError naming the close ones."""
+    try:
+        plugins.find(group, name)
+    except plugins.PluginError as exc:
+        raise ValueError(str(exc).split(": ", 1)[1]) from None
+    return name
+
+
 def consensus_fits(s: LearnerSettings) -> None:
     """Refuse a consensus rule that cannot serve these settings: one that fails to load, a model it
     does not work with, options it does not take (a ValueError naming the rule)."""
@@ -357,11 +366,7 @@ class LearnerSettings(Section):
     @field_validator("consensus")
     @classmethod
     def _installed_rule(cls, value: str) -> str:
-        try:
-            plugins.find("consensus", value)
-        except plugins.PluginError as exc:
-            raise ValueError(str(exc).removeprefix("learner.consensus: ")) from None
-        return value
+        return installed("consensus", value)
 
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:
@@ -454,12 +459,7 @@ class FaultSettings(Section):
     @field_validator("attack")
     @classmethod
     def _installed_attack(cls, value: str) -> str:
-        if value != "none":
-            try:
-                plugins.find("attacks", value)
-            except plugins.PluginError as exc:
-                raise ValueError(str(exc).removeprefix("faults.attack: ")) from None
-        return value
+        return value if value == "none" else installed("attacks", value)
 
 
 class UpSettings(Section):
