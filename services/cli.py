@@ -55,8 +55,8 @@ COMMANDS = {
     "secrets": "Write a run's credentials: a CA, a certificate per service and the router's access policy.",
     "net": "Change the network of a run started with up --netns: cut the team in two, heal it, set link rates and "
            "loss (root).",
-    "plugins": "List the installed parts (consensus rules, dataset readers, services, attacks), built-in and from other "
-               "packages, each checked.",
+    "plugins": "List the installed parts (consensus rules, networks, dataset readers, services, attacks), built-in and "
+               "from other packages, each checked.",
     "services": "List the run's kinds of service (the registry): one per run or per robot, config section, command.",
     "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
             "(nav_msgs/OccupancyGrid).",

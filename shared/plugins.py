@@ -1,4 +1,5 @@
-"""Parts found by name through Python entry points: consensus rules, dataset readers, services and attacks.
+"""Parts found by name through Python entry points: consensus rules, dataset readers, services, attacks
+and the learners' networks.
 
 swarmmap's own parts are registered the same way as anyone's, in its ``pyproject.toml``; a
 package of one's own adds a part without touching swarmmap by declaring an entry point in the
@@ -72,6 +73,23 @@ class DatasetReader:
 
 
 @dataclass(frozen=True)
+class ModelPlugin:
+    """A learner's network (``learner.model``).
+
+    ``build(spec, bounds)`` returns the network, a torch module mapping (N, 2) points in metres to
+    occupancy probabilities with ``logits(points)``, ``shape`` and ``scale`` (swarmmap's FourierNet,
+    swarmmap.shared.learning.models, is the model to subclass); it is called with torch's generator
+    seeded by the run's seed, so every learner starts from the same network. ``spec`` holds
+    ``learner.model_shape`` (``shape``), ``siren_scale`` (``scale``) and the Bayesian and dropout
+    settings. ``std``: the network is a StochasticNet whose passes differ, and its maps have a
+    standard deviation."""
+
+    build: Callable[[Any, Any], Any]
+    summary: str
+    std: bool = False
+
+
+@dataclass(frozen=True)
 class AttackPlugin:
     """A hostile member's lie (``faults.attack``, for tests, the bench and research on robust consensus).
 
@@ -109,7 +127,8 @@ class Group:
 GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", "swarmmap.shared.plugins:ConsensusPlugin"),
                               Group("datasets", "world.dataset", "swarmmap.shared.plugins:DatasetReader"),
                               Group("services", "service", "swarmmap.shared.wire.services:ServiceKind"),
-                              Group("attacks", "faults.attack", "swarmmap.shared.plugins:AttackPlugin"))}
+                              Group("attacks", "faults.attack", "swarmmap.shared.plugins:AttackPlugin"),
+                              Group("models", "learner.model", "swarmmap.shared.plugins:ModelPlugin"))}
 
 
 @dataclass(frozen=True)
@@ -237,6 +256,8 @@ def report() -> tuple[list[str], int]:
                 what = spec.describe if isinstance(spec, DatasetReader) else spec.summary
                 if isinstance(spec, (ConsensusPlugin, AttackPlugin)) and spec.models:
                     what += f" (model {' or '.join(spec.models)})"
+                if isinstance(spec, ModelPlugin) and spec.std:
+                    what += " (std maps)"
             except PluginError as exc:
                 refused += 1
                 what = f"REFUSED: {exc}"

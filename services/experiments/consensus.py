@@ -27,7 +27,7 @@ from swarmmap.services.experiments.common import (
     write_csv,
 )
 from swarmmap.services.experiments.score import SCORE_KEYS, mean_scores, score_run, scores_table
-from swarmmap.shared.run.config import STD_MODELS, RunConfig
+from swarmmap.shared.run.config import RunConfig, std_models
 from swarmmap.shared.run.rundir import read_metrics
 
 
@@ -90,7 +90,7 @@ def consensus(args: argparse.Namespace) -> int:
             sent.setdefault(cell, {})[seed] = per_learner
             curves.setdefault(cell, []).append(metrics)
             byte_curves.setdefault(cell, []).append(wire)
-            sc = mean_scores(score_run(run_dir)) if base.learner.model in STD_MODELS else {k: float("nan") for k in SCORE_KEYS}
+            sc = mean_scores(score_run(run_dir)) if base.learner.model in std_models() else {k: float("nan") for k in SCORE_KEYS}
             scored.setdefault(cell, []).append(sc)
             rows.append([cons, link, every, comp, seed, final, per_learner] + [sc[k] for k in SCORE_KEYS])
     finally:
@@ -195,7 +195,7 @@ def consensus_report(args, base: RunConfig, cells, finals, sent, scored) -> list
             ref = (cell[0], 1.0, 1, "none")
             ratio = np.mean([sent[ref][s] for s in seeds]) / np.mean([sent[cell][s] for s in seeds])
             lines.append(f"| {cell[3]} | {cell[0]} | {ratio:.1f}x fewer | {100 * (mean(cell) - mean(ref)) / mean(ref):+.1f}% |")
-    if base.learner.model in STD_MODELS:
+    if base.learner.model in std_models():
         lines += ["", "Uncertainty scores, mean over agents and seeds:", ""]
         lines += scores_table([(cell_name(*c), {k: float(np.nanmean([x[k] for x in scored[c]])) for k in SCORE_KEYS})
                                for c in cells])

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import TextIO
 
-from swarmmap.shared.run.config import STD_MODELS
+from swarmmap.shared.run.config import std_models
 from swarmmap.shared.run.progress import PROGRESS_EVERY_S, duration
 from swarmmap.shared.run.rundir import config_doc, read_summary
 
@@ -116,7 +116,7 @@ def next_commands(run_dir: Path, summary: dict) -> list[str]:
     if (run_dir / "recording.rrd").exists():
         cmds.append((f"rerun {shlex.quote(str(run_dir / 'recording.rrd'))}", "the maps, robots and curves in Rerun"))
     if (run_dir / "models").is_dir():
-        if (config_doc(run_dir).get("learner") or {}).get("model") in STD_MODELS:
+        if (config_doc(run_dir).get("learner") or {}).get("model") in std_models():
             cmds.append((f"swarmmap experiment score {where}", "uncertainty scores of its std maps"))
         else:  # a FourierNet has no std of its own: the team's models as an ensemble have one
             cmds.append((f"swarmmap experiment score {where} --ensemble", "uncertainty scores of the robots' models "

@@ -28,8 +28,6 @@ from pydantic import BaseModel, Field, ValidationError, model_validator
 from swarmmap.shared import plugins
 from swarmmap.shared.learning.layout import state_copies
 from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named where the config is
-    MODEL_KINDS,
-    STD_MODELS,
     FaultSettings,
     LearnerSettings,
     LidarSettings,
@@ -43,7 +41,9 @@ from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named w
     ZenohSettings,
     consensus_fits,
     consensus_options,
+    model_kinds,
     parse_shape,
+    std_models,
 )
 from swarmmap.shared.wire.protocol import NAME_PATTERN
 

@@ -87,8 +87,8 @@ def _is_section(annotation: object) -> bool:
 
 def settings_fingerprint(cfg: RunConfig) -> dict:
     """Every field that counts, as ``"section.field": value`` (JSON values), the checkpoint format,
-    for a plan file its SHA-256 (the same path may hold another plan), and for a consensus rule
-    from another package that package's name and version."""
+    for a plan file its SHA-256 (the same path may hold another plan), and for a consensus rule,
+    a network or an attack from another package that package's name and version."""
     doc = cfg.model_dump(mode="json")
     out: dict = {"checkpoint_format": CHECKPOINT_FORMAT}
     for section, names in config_fields().items():
@@ -98,8 +98,10 @@ def settings_fingerprint(cfg: RunConfig) -> dict:
     out["world.floorplan_sha256"] = plan_sha256(cfg.world.floorplan)
     if not cfg.learner.consensus_options:  # as a run of a swarmmap before rules took options: its runs resume
         del out["learner.consensus_options"]
-    if (where := plugins.origin("consensus", cfg.learner.consensus)) is not None:  # a rule from another package
-        out["learner.consensus_plugin"] = where
+    for group, field, name in (("consensus", "learner.consensus", cfg.learner.consensus), ("models", "learner.model", cfg.learner.model),
+                               ("attacks", "faults.attack", cfg.faults.attack)):
+        if (where := plugins.origin(group, name)) is not None:  # a part from another package: its package and version
+            out[f"{field}_plugin"] = where
     return out
 
 

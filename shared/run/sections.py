@@ -4,7 +4,6 @@ models and options). :mod:`swarmmap.shared.run.config` puts them together into a
 
 from __future__ import annotations
 
-import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,12 +35,18 @@ def parse_shape(value: Any) -> list[int]:
         raise ValueError(f"a model shape is a list of layer widths like 2,64,32,1 or [2, 64, 32, 1], got {value!r}") from None
 
 
-ModelKind = Literal["fourier", "bnn", "dropout"]  # the learner's networks (learner.model)
 # learner.algorithm: the learning rules (services/learner/registry.py names the same)
 AlgorithmKind = Literal["dinno", "dsgd", "dsgt", "individual", "centralized"]
-MODEL_KINDS: tuple[str, ...] = typing.get_args(ModelKind)
-# The learner models whose maps have a standard deviation (stochastic networks); a FourierNet's have none.
-STD_MODELS = ("bnn", "dropout")
+
+
+def model_kinds() -> tuple[str, ...]:
+    """The learner's networks (``learner.model``): the model plug-ins installed, swarmmap's first."""
+    return tuple(plugins.names("models"))
+
+
+def std_models() -> tuple[str, ...]:
+    """The learner models whose maps have a standard deviation (stochastic networks: bnn, dropout)."""
+    return tuple(n for n in plugins.names("models") if plugins.load("models", n).std)
 
 
 def installed(group: str, name: str) -> str:
@@ -244,9 +249,10 @@ class LearnerSettings(Section):
         "complete", description="communication graph: complete, ring, an edge-list file, or DiNNO's disk graph")
     graph_file: Path | None = Field(None, description="graph = file: YAML/JSON list of [i, j] edges")
     comm_radius_m: float = Field(15.0, gt=0, description="graph = disk: robots within this distance talk (m)")
-    model: ModelKind = Field(
-        "fourier", description="DiNNO's deterministic FourierNet, the paper's Bayesian network, or a FourierNet with MC "
-                                "dropout (a baseline for the BNN's uncertainty)")
+    model: str = Field(
+        "fourier", description="the network, a model plug-in (swarmmap plugins lists those installed): fourier (DiNNO's "
+                                "deterministic FourierNet), bnn (the paper's Bayesian network) or dropout (a FourierNet with "
+                                "MC dropout, a baseline for the BNN's uncertainty), or one from another package")
     model_shape: list[int] = Field(
         default_factory=lambda: [2, 256, 64, 64, 64, 1],
         description="layer widths: input 2, sine layer, hidden ReLU layers (Bayesian for bnn), output 1")
@@ -367,6 +373,11 @@ class LearnerSettings(Section):
     @classmethod
     def _installed_rule(cls, value: str) -> str:
         return installed("consensus", value)
+
+    @field_validator("model")
+    @classmethod
+    def _installed_model(cls, value: str) -> str:
+        return installed("models", value)
 
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:

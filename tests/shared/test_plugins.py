@@ -188,3 +188,33 @@ MUTE = AttackPlugin(None, "says nothing", sends="nothing")
         config("faults.attack=halve", "faults.attackers=[1]", "learner.model=bnn")
     with pytest.raises(ConfigError, match=r"faults.attack.*no attacks plug-in is called 'halv'.*did you mean 'halve'"):
         config("faults.attack=halv")
+
+
+def test_a_network_from_another_package_is_built_saved_and_loaded_by_its_name(install, tmp_path):
+    install("my-nets", "3.1", {"swarmmap.models": {"wide": "my_nets:WIDE"}}, "my_nets", '''
+from swarmmap.shared.plugins import ModelPlugin
+
+def build(spec, bounds):
+    from swarmmap.shared.learning.models import FourierNet
+    shape = [spec.shape[0], *(2 * w for w in spec.shape[1:-1]), spec.shape[-1]]
+    return FourierNet(shape, spec.scale, bounds)
+
+WIDE = ModelPlugin(build, "a FourierNet twice as wide")
+''')
+    import torch
+
+    from swarmmap.shared.learning.networks import build_network, has_std, load_model, model_kind, save_model
+    from swarmmap.shared.run.config import std_models
+
+    cfg = config("learner.model=wide", "learner.model_shape=[2,16,8,1]")
+    net = build_network(cfg.network(), (0.0, 0.0, 4.0, 4.0), cfg.seed)
+    assert model_kind(net) == "wide" and net.shape == [2, 32, 16, 1] and not has_std("wide") and "wide" not in std_models()
+    again = build_network(cfg.network(), (0.0, 0.0, 4.0, 4.0), cfg.seed)  # every learner starts from the same network
+    assert all(torch.equal(a, b) for a, b in zip(net.parameters(), again.parameters()))
+    save_model(net, tmp_path / "robot-0.pt")
+    back = load_model(tmp_path / "robot-0.pt")
+    assert model_kind(back) == "wide" and all(torch.equal(a, b) for a, b in zip(net.state_dict().values(),
+                                                                                back.state_dict().values()))
+    assert settings_fingerprint(cfg)["learner.model_plugin"] == "my-nets 3.1"
+    with pytest.raises(ConfigError, match=r"learner.model: no models plug-in is called 'wdie'.*did you mean 'wide'"):
+        config("learner.model=wdie")

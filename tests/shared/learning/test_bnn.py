@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from swarmmap.shared.learning.bnn import BayesLinear, BayesNet, gaussian_kl, is_rho, predict_mean_std, sample_weights
 from swarmmap.shared.learning.models import StochasticNet
 from swarmmap.shared.learning.networks import build_model, has_std, load_model, save_model
-from swarmmap.shared.run.config import MODEL_KINDS
+from swarmmap.shared.run.config import model_kinds
 
 
 def test_layer_kl_matches_a_monte_carlo_estimate():
@@ -152,7 +152,7 @@ def test_mc_dropout_network_carries_a_fourier_state_and_reports_a_spread(tmp_pat
 def test_has_std_names_exactly_the_stochastic_models():
     """The observer's std panel and the experiments' uncertainty scores ask ``has_std``: it must
     agree with what each kind of model is."""
-    for kind in MODEL_KINDS:
+    for kind in model_kinds():
         model = build_model([2, 8, 8, 1], 1.0, (0.0, 1.0, 0.0, 1.0), 0, kind)
         assert has_std(kind) == isinstance(model, StochasticNet), kind
     with pytest.raises(ValueError, match="unknown model"):
