@@ -37,6 +37,9 @@ if TYPE_CHECKING:
     pass
 
 
+MAX_POSE_M = 1_000_000.0  # a pose farther from the map's origin than this is corrupt, not a robot's
+
+
 class DatasetError(ValueError):
     """A dataset that cannot be read: the message names the file and what is wrong."""
 
@@ -71,6 +74,12 @@ class LaserLog:
         if n and not keep.all():  # a pose or stamp that is no number places nothing
             self.t, self.poses, self.ranges = self.t[keep], self.poses[keep], self.ranges[keep]
             self.notes = [*self.notes, f"left out {n - int(keep.sum())} scans whose pose or stamp is not a finite number"]
+            n = len(self.t)
+        near = (np.abs(self.poses[:, :2]) <= MAX_POSE_M).all(axis=1)
+        if n and not near.all():  # a corrupt pose (1e308) would make the map's extent infinite
+            self.t, self.poses, self.ranges = self.t[near], self.poses[near], self.ranges[near]
+            self.notes = [*self.notes, f"left out {n - int(near.sum())} scans whose pose lies beyond {MAX_POSE_M / 1000:.0f} km "
+                                       "of the origin"]
             n = len(self.t)
         if n == 0:
             raise DatasetError(self.source, "no laser scans in it (with a finite pose)")

@@ -86,6 +86,22 @@ def load_cubicasa_plan(path: Path) -> FloorPlan:
                      kind="cubicasa")
 
 
+def read_image(path: Path, what: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """An image's grey levels (uint8) and its alpha channel (None without one); a PlanError naming
+    the file when it is unreadable or larger than MAX_IMAGE_PIXELS, before its pixels are decoded."""
+    try:
+        with Image.open(path) as img:
+            if img.width * img.height > MAX_IMAGE_PIXELS:
+                raise PlanError(path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
+            alpha = np.asarray(img.getchannel("A")) if "A" in img.getbands() else None
+            return np.asarray(img.convert("L")), alpha
+    except Image.DecompressionBombError as exc:  # PIL refuses to open it at all: twice its own pixel limit
+        words = str(exc).split("(", 1)[-1].split(")", 1)[0]
+        raise PlanError(path, f"image larger than {MAX_IMAGE_PIXELS} pixels ({words})") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise PlanError(path, f"not a readable {what}: {exc}") from None
+
+
 def _polygon(points: np.ndarray) -> Polygon:
     poly = Polygon(points)
     return poly if poly.is_valid else poly.buffer(0)
@@ -93,13 +109,7 @@ def _polygon(points: np.ndarray) -> Polygon:
 
 def load_dinno_png(path: Path, pixels_per_metre: float, border_px: int, mesh_resolution: float) -> FloorPlan:
     """A DiNNO occupancy PNG as a raster FloorPlan (walls derived at ``mesh_resolution``)."""
-    try:
-        with Image.open(path) as img:
-            if img.width * img.height > MAX_IMAGE_PIXELS:
-                raise PlanError(path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
-            pixels = np.asarray(img.convert("L"))
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise PlanError(path, f"not a readable PNG image: {exc}") from None
+    pixels, _ = read_image(path, "PNG image")
     occupied = pixels >= 128
     if border_px > 0:
         occupied[:border_px] = occupied[-border_px:] = True
@@ -168,14 +178,8 @@ def load_ros_map(path: Path, mesh_resolution: float) -> FloorPlan:
     if not isinstance(image, str) or not image:
         raise PlanError(path, f"image must name the map's image file, got {image!r}")
     image_path = Path(image) if Path(image).is_absolute() else path.parent / image
-    try:
-        with Image.open(image_path) as img:
-            if img.width * img.height > MAX_IMAGE_PIXELS:
-                raise PlanError(image_path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
-            alpha = np.asarray(img.getchannel("A")) if "A" in img.getbands() else None
-            pixels = np.asarray(img.convert("L")).astype(np.float64)
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise PlanError(image_path, f"not a readable map image: {exc}") from None
+    grey, alpha = read_image(image_path, "map image")
+    pixels = grey.astype(np.float64)
     free, unknown = ros_cells(pixels, alpha, mode, bool(negate), occ_t, free_t)
     if not free.any():
         raise PlanError(path, f"the map has no free cell (occupancy below free_thresh {free_t}); check negate and the thresholds")

@@ -398,6 +398,10 @@ def test_damaged_input_is_refused_or_left_out_with_a_reason(tmp_path):
     poses[[2, 5]] = np.nan
     kept = LaserLog(source="x", t=log.t, poses=poses, angles=log.angles, ranges=log.ranges, no_return_m=log.no_return_m)
     assert len(kept) == len(log) - 2 and "left out 2 scans whose pose or stamp is not a finite number" in kept.notes
+    corrupt = log.poses.copy()
+    corrupt[7, 0] = 1e308  # finite, but no robot's: the map's extent would be infinite
+    far = LaserLog(source="x", t=log.t, poses=corrupt, angles=log.angles, ranges=log.ranges, no_return_m=log.no_return_m)
+    assert len(far) == len(log) - 1 and "left out 1 scans whose pose lies beyond 1000 km of the origin" in far.notes
     with pytest.raises(DatasetError, match="no laser scans in it"):
         LaserLog(source="x", t=log.t[:1], poses=poses[2:3], angles=log.angles, ranges=log.ranges[:1], no_return_m=80.0)
 

@@ -110,6 +110,19 @@ def test_png_without_free_space_and_corrupt_png(tmp_path):
         load_floorplan(str(broken), WorldSettings(), 0)
 
 
+def test_an_image_too_large_to_open_is_refused_by_name_not_by_a_traceback(tmp_path):
+    """A 20000 x 20000 one-bit PNG is 90 KB on disk and 400 M pixels: PIL refuses to open it at all
+    (a decompression bomb, past twice its limit); a plan, and a ROS map's image, are named instead."""
+    Image.new("1", (20000, 20000), 1).save(tmp_path / "bomb.png")
+    assert (tmp_path / "bomb.png").stat().st_size < 200_000
+    with pytest.raises(PlanError, match=r"bomb.png: image larger than 50000000 pixels \(400000000 pixels\)"):
+        load_floorplan(str(tmp_path / "bomb.png"), WorldSettings(), 0)
+    (tmp_path / "map.yaml").write_text("image: bomb.png\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
+                                       "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    with pytest.raises(PlanError, match=r"bomb.png: image larger than 50000000 pixels"):
+        load_floorplan(str(tmp_path / "map.yaml"), WorldSettings(), 0)
+
+
 @pytest.fixture
 def box_png(tmp_path):
     img = np.zeros((200, 300))
