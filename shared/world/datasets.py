@@ -142,6 +142,31 @@ def pile_up(ranges: np.ndarray) -> float:
     return top if at_top >= max(3, len(finite) // 1000) else math.inf
 
 
+# What a CARMEN log may hold before it is refused (a line of 1081 beams is about 10 KB; the Intel
+# log holds 13,631 scans): caps that keep a crafted file from taking gigabytes and minutes.
+MAX_LINE_CHARS = 1 << 20
+MAX_BEAMS = 20_000
+MAX_SCANS = 2_000_000
+
+
+def beams(field: str) -> int:
+    """A scan's count of beams (or remission values), at most MAX_BEAMS (a ValueError past it)."""
+    n = int(field)
+    if not 0 <= n <= MAX_BEAMS:
+        raise ValueError(f"{n} beams: a scan has between 0 and {MAX_BEAMS}")
+    return n
+
+
+def _bounded_lines(f: io.TextIOBase, path: Path):
+    """(line number, line) of a text file, refusing a line longer than MAX_LINE_CHARS before it is read whole."""
+    lineno = 0
+    while line := f.readline(MAX_LINE_CHARS + 1):
+        lineno += 1
+        if len(line) > MAX_LINE_CHARS:
+            raise DatasetError(path, f"line {lineno} is longer than {MAX_LINE_CHARS} characters: not a CARMEN log line")
+        yield lineno, line
+
+
 def read_carmen(path: str | Path, pose: str = "log") -> LaserLog:
     """The front laser's scans of a CARMEN log (FLASER or ROBOTLASER1 lines, whichever it has;
     FLASER when both). Readings at the log's no-return value (a ROBOTLASER1 line's maximum range,
@@ -154,14 +179,16 @@ def read_carmen(path: str | Path, pose: str = "log") -> LaserLog:
     no_return: float | None = None
     try:
         with _open_text(path) as f:
-            for lineno, line in enumerate(f, 1):
+            for lineno, line in _bounded_lines(f, path):
                 kind, _, rest = line.partition(" ")
                 if kind not in rows:
                     continue
+                if len(rows[kind]) >= MAX_SCANS:
+                    raise DatasetError(path, f"more than {MAX_SCANS} {kind} scans: split the log")
                 parts = rest.split()
                 try:
                     if kind == "FLASER":
-                        n = int(parts[0])
+                        n = beams(parts[0])
                         ranges = [float(v) for v in parts[1 : 1 + n]]
                         tail = [float(v) for v in parts[1 + n : 1 + n + 7]]
                         if len(ranges) != n or len(tail) != 7:
@@ -170,9 +197,9 @@ def read_carmen(path: str | Path, pose: str = "log") -> LaserLog:
                         beam_angles = angles_of.setdefault(f"F{n}", carmen_angles(n))
                     else:  # ROBOTLASER1 type start fov res max_range accuracy remission_mode n r.. m rem.. laser_pose robot_pose ...
                         start, res, max_r = float(parts[1]), float(parts[3]), float(parts[4])
-                        n = int(parts[7])
+                        n = beams(parts[7])
                         ranges = [float(v) for v in parts[8 : 8 + n]]
-                        m = int(parts[8 + n])
+                        m = beams(parts[8 + n])
                         tail = [float(v) for v in parts[9 + n + m : 9 + n + m + 6]]
                         stamp = float(parts[9 + n + m + 11])
                         if len(ranges) != n or len(tail) != 6:

@@ -418,3 +418,35 @@ def test_stamps_headings_and_carmens_100_degree_mode():
     assert _yaw(SimpleNamespace(x=0.0, y=0.0, z=1.0, w=1.0)) == pytest.approx(math.pi / 2)  # not normalised
     a = carmen_angles(401)
     assert math.degrees(a[0]) == pytest.approx(-50) and math.degrees(a[-1]) == pytest.approx(50)
+
+
+def test_a_log_made_to_take_memory_is_refused_in_seconds_within_its_caps(tmp_path):
+    """A gzipped log of one 30 MB line (about 30 KB on disk) and a FLASER line of a million beams are
+    refused by name before they are read whole (they took 309 MB and 732 MB and 78 s)."""
+    import resource
+    import time
+
+    from swarmmap.shared.world.datasets import MAX_BEAMS, MAX_LINE_CHARS
+
+    (tmp_path / "one-line.log.gz").write_bytes(gzip.compress(b"FLASER " + b"1" * 30_000_000))
+    assert (tmp_path / "one-line.log.gz").stat().st_size < 100_000
+    (tmp_path / "wide.log").write_text(f"FLASER 1000000 {'2 ' * 1000} 0 0 0 0 0 0 0 host 0\n")
+    limit = resource.getrlimit(resource.RLIMIT_AS)
+    start = time.monotonic()
+    try:  # address space: what this process has mapped now (torch's libraries among it) and 512 MiB more
+        resource.setrlimit(resource.RLIMIT_AS, (int(_mapped_bytes() + (512 << 20)), limit[1]))
+        with pytest.raises(DatasetError, match=f"line 1 is longer than {MAX_LINE_CHARS} characters"):
+            read_log(tmp_path / "one-line.log.gz")
+        with pytest.raises(DatasetError, match=f"line 1: a FLASER line that cannot be read .*between 0 and {MAX_BEAMS}"):
+            read_log(tmp_path / "wide.log")
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, limit)
+    assert time.monotonic() - start < 5
+
+
+def _mapped_bytes() -> int:
+    """This process's virtual memory now (Linux: /proc/self/statm, in pages)."""
+    import os
+
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
