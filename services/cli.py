@@ -79,9 +79,7 @@ def descriptions() -> dict[str, str]:
 
 
 def section_of(command: str) -> str | None:
-    """The config section whose flags a command takes (None: the common ones only)."""
-    if command in ("up", "prepare", "ros2"):
-        return {"ros2": "ros2"}.get(command, "up")
+    """The config section whose flags a service's command takes (None: the common ones only)."""
     from swarmmap.shared.wire.services import kinds
 
     k = kinds().get(command)

@@ -22,7 +22,7 @@ import zenoh
 
 from swarmmap.shared.run.config import ConfigError, RunConfig
 from swarmmap.shared.run.flags import config_from_args
-from swarmmap.shared.run.progress import eta_words, time_left
+from swarmmap.shared.run.progress import TeamProgress, eta_words
 from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, read_summary, summary_outcome
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import decode
@@ -111,8 +111,10 @@ def live_report(cfg: RunConfig, snap: Snapshot, window: float, run_dir: Path | N
         lines.append(f"  {service:<8} {ident:>3}  {rates or 'idle'}")
     rows = learner_rows(snap, run_dir)
     if rows:
-        slow = min(snap.metrics.values(), key=lambda m: m.round, default=None)  # the team's pace is its slowest learner's
-        eta = None if slow is None or slow.final else time_left(slow.round, cfg.rounds(), slow.wall_time_s)
+        team = TeamProgress(cfg.robots, cfg.rounds())  # the team's pace is its slowest learner's, as up's line says
+        for m in snap.metrics.values():
+            team.add(m)
+        eta = team.eta_s() if team.finished() < len(snap.metrics) else None
         lines.append(f"learners ({len(rows)} of {cfg.robots} reported, of {cfg.rounds()} rounds"
                      f"{'' if eta is None else '; ' + eta_words(eta)}):")
         for robot, (rnd, val, final, source) in sorted(rows.items()):

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from swarmmap.shared.run.config import ConfigError, RunConfig, deep_merge, resolve, validate_config
-from swarmmap.shared.run.rundir import metric_rows, read_summary
+from swarmmap.shared.run.config import ConfigError, RunConfig, deep_merge, read_config_file, resolve, validate_config
+from swarmmap.shared.run.rundir import final_val_bce, metric_rows, read_summary
 
 
 class RunError(RuntimeError):
@@ -50,12 +50,23 @@ def overrides_tree(overrides: dict[str, Any]) -> dict[str, Any]:
     return tree
 
 
+CONFIG_SUFFIXES = (".yaml", ".yml", ".json")
+
+
+def _config_file(preset_or_file: str | Path | None) -> Path | None:
+    """``preset_or_file`` when it names a config file (by its suffix), None for a preset's name."""
+    return Path(preset_or_file) if preset_or_file is not None and Path(preset_or_file).suffix in CONFIG_SUFFIXES else None
+
+
+def _resolve(preset_or_file: str | Path | None, tree: dict[str, Any]) -> RunConfig:
+    if (file := _config_file(preset_or_file)) is not None:
+        return resolve(tree, config_file=file, environ={})
+    return resolve({"preset": preset_or_file, **tree} if preset_or_file else tree, environ={})
+
+
 def config(preset_or_file: str | Path | None = None, **overrides: Any) -> RunConfig:
     """The config :func:`run` would start: a preset's name or a config file, with ``overrides``."""
-    tree = overrides_tree(overrides)
-    if preset_or_file is not None and (Path(preset_or_file).suffix in (".yaml", ".yml", ".json")):
-        return resolve(tree, config_file=Path(preset_or_file), environ={})
-    return resolve({"preset": preset_or_file, **tree} if preset_or_file else tree, environ={})
+    return _resolve(preset_or_file, overrides_tree(overrides))
 
 
 def run(preset_or_file: str | Path | None = None, *, quiet: bool = False, timeout: float | None = None,
@@ -63,19 +74,17 @@ def run(preset_or_file: str | Path | None = None, *, quiet: bool = False, timeou
     """Run ``swarmmap up`` with a preset (``"smoke"``) or a config file and ``overrides``; the run
     directory is ``run_dir`` if given, else ``runs/<run id>`` under the current folder. Its console
     goes to this process's standard output unless ``quiet``."""
-    cfg = config(preset_or_file, **overrides)
+    tree = overrides_tree(overrides)
+    cfg = _resolve(preset_or_file, tree)
     run_id = cfg.run_id if cfg.run_id != "default" else time.strftime("run-%Y%m%d-%H%M%S")
     run_dir = (cfg.run_dir or Path("runs") / run_id).resolve()
-    doc = deep_merge(overrides_tree(overrides), {"run_id": run_id, "run_dir": str(run_dir)})
-    args = ["--preset", str(preset_or_file)] if preset_or_file and Path(preset_or_file).suffix not in (".yaml", ".yml", ".json") else []
+    file = _config_file(preset_or_file)
+    base = read_config_file(file) if file is not None else {"preset": preset_or_file} if preset_or_file else {}
+    doc = deep_merge(base, deep_merge(tree, {"run_id": run_id, "run_dir": str(run_dir)}))
     with tempfile.TemporaryDirectory(prefix="swarmmap-api-") as tmp:
-        given = Path(tmp) / "overrides.yaml"
-        if args or preset_or_file is None:
-            given.write_text(yaml.safe_dump(doc))
-        else:  # a config file under the overrides
-            base = yaml.safe_load(Path(preset_or_file).read_text()) or {}
-            given.write_text(yaml.safe_dump(deep_merge(base, doc)))
-        proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--config", str(given), *args],
+        given = Path(tmp) / "config.yaml"
+        given.write_text(yaml.safe_dump(doc))
+        proc = subprocess.run([sys.executable, "-m", "swarmmap.services.cli", "up", "--config", str(given)],
                               stdout=subprocess.DEVNULL if quiet else None, stderr=subprocess.PIPE, text=True, timeout=timeout)
     if proc.returncode == 2 or not (run_dir / "config.yaml").exists():
         raise RunError(f"swarmmap up refused the run (status {proc.returncode}): {proc.stderr.strip()[-2000:]}")
@@ -144,8 +153,7 @@ class Run:
 
     def final_val_bce(self) -> dict[int, float]:
         """Each robot's last reported validation loss."""
-        m = self.metrics
-        return {int(r): float(m["val_bce"][m["robot"] == r][np.argmax(m["round"][m["robot"] == r])]) for r in np.unique(m["robot"])}
+        return final_val_bce(self.path)
 
     def maps(self, robot: int) -> dict[str, np.ndarray]:
         """Robot ``robot``'s learned map: ``mean`` occupancy (and ``std`` for a model that has

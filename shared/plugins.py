@@ -150,7 +150,7 @@ class Plugin:
         return f"{self.package} {self.version}"
 
     def describe(self) -> str:
-        return f"{GROUPS[self.group].name} plug-in {self.name!r} ({self.target}, from {self.origin()})"
+        return f"{self.group} plug-in {self.name!r} ({self.target}, from {self.origin()})"
 
 
 def _group(group: str) -> Group:
@@ -213,7 +213,7 @@ def load(group: str, name: str) -> Any:
     spec = GROUPS[group].spec_type()
     if not isinstance(obj, spec):
         raise PluginError(f"{plugin.describe()} breaks its contract: {plugin.target} is a {type(obj).__name__}, "
-                          f"not a swarmmap.shared.plugins.{spec.__name__}")
+                          f"not a {GROUPS[group].spec.replace(':', '.')}")
     return obj
 
 
@@ -247,12 +247,10 @@ def report() -> tuple[list[str], int]:
     lines, refused = [], 0
     for group in GROUPS.values():
         lines.append(f"{group.name} ({group.field}; entry points {group.entry_points}):")
-        _, many = _scan(group.name)
-        for plugin in installed(group.name):
+        parts = installed(group.name)
+        for plugin in parts:
             try:
-                if plugin.name in many:
-                    find(group.name, plugin.name)
-                spec = load(group.name, plugin.name)
+                spec = load(group.name, plugin.name)  # a name two packages register is refused here
                 what = spec.describe if isinstance(spec, DatasetReader) else spec.summary
                 if isinstance(spec, (ConsensusPlugin, AttackPlugin)) and spec.models:
                     what += f" (model {' or '.join(spec.models)})"
@@ -262,6 +260,6 @@ def report() -> tuple[list[str], int]:
                 refused += 1
                 what = f"REFUSED: {exc}"
             lines.append(f"  {plugin.name:<12} {plugin.origin():<28} {what}")
-        if not installed(group.name):
+        if not parts:
             lines.append("  (none installed)")
     return lines, refused

@@ -75,3 +75,19 @@ def test_ctrl_c_and_sigterm_end_it_at_once(tmp_path, sig):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_live_runs_learners_come_with_the_time_left_at_the_slowest_learners_pace():
+    from swarmmap.services.status import Snapshot, live_report
+    from swarmmap.shared.run.config import resolve
+    from swarmmap.shared.wire.protocol import Metrics
+
+    cfg = resolve({"preset": "smoke", "robots": 2, "run_id": "r", "learner": {"rounds": 60}}, environ={})
+    snap = Snapshot()
+    for robot, (rnd, wall) in enumerate([(20, 10.0), (30, 12.0)]):  # robot 0: 20 rounds in 10 s, 40 to go
+        snap.metrics[robot] = Metrics(run="r", sender=robot, round=rnd, wall_time_s=wall, val_bce=0.3, consensus_error=0.0,
+                                      bytes_sent=0, bytes_received=0, final=False)
+    assert "learners (2 of 2 reported, of 60 rounds; ETA 20 s):" in live_report(cfg, snap, 1.0, None)
+    for robot in (0, 1):
+        snap.metrics[robot] = snap.metrics[robot].model_copy(update={"round": 60, "final": True})
+    assert "learners (2 of 2 reported, of 60 rounds):" in live_report(cfg, snap, 1.0, None)
