@@ -14,7 +14,9 @@ before its own update; this round's messages are sent again after ``resend_after
 without progress, then after twice as long, up to RESEND_BACKOFF times (receivers ignore
 duplicates; a link too slow for a round's messages is not flooded with their copies). Robots come and go
 (:mod:`~swarmmap.services.learner.membership`): a neighbour that left or went silent is left
-out and the round finishes with the neighbours the node has; it is taken back when it sends a
+out (a neighbour is heard only when it moves forward: its first State of a round that this node
+takes, or its RoundComplete of a round whose State is here; a State of a far-future round or one
+it already sent is no word from it) and the round finishes with the neighbours the node has; it is taken back when it sends a
 State of the round at hand; a node that restarts behind its team replays the rounds it lost or
 catches up to the team's round: from its own parameters, or, when it is more than REUNION_ROUNDS
 rounds behind (it waited alone through a partition), from its neighbours' States of that round
@@ -131,15 +133,13 @@ class Algorithm1:
         if msg.sender in self.members.banned:
             return
         if msg.kind == "state" and self.buf.held(msg.sender, msg.round) is not None:  # the first State of a round counts
-            self.members.heard_from(msg.sender, now)
             if msg.exact and self.members.judge(msg, self.check, self.state):  # a second, different, plausible one: a liar
                 self.members.equivocates(msg, self.buf, self.late, self.rnd)
             return
         newest = self.replay.seen(msg.sender, msg.round) if msg.kind == "state" else False
         if self.rules.round_wait > 0 and not self.joining and not self.rnd <= msg.round <= self.rnd + ROUNDS_AHEAD:
-            if msg.kind == "state":  # (a RoundComplete is no word without its State)
+            if self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state)):  # (a newer State it takes)
                 self.members.heard_from(msg.sender, now)
-            self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state))
         elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
             if newest:  # (it computes its rounds anew: what it sent before it died is not held against it)
                 self.buf.forget_sender(msg.sender)
@@ -161,7 +161,6 @@ class Algorithm1:
     def on_state(self, msg: Envelope, now: float) -> None:
         """A State of this round or a later one: kept for its round, a reason to catch up, or refused."""
         j, r = msg.sender, msg.round
-        self.members.heard_from(j, now)
         keep = self.rules.keep_rounds
         # Left behind (slow to start, starved of CPU): stuck here longer than the neighbours wait for
         # anyone while they are further ahead than they can replay: catch up rather than wait.
@@ -176,6 +175,7 @@ class Algorithm1:
         stale = (self.joining and not self.updated) or left_behind  # own parameters rounds old: judged more loosely
         if not self.members.judge(msg, self.check_stale if stale else self.check, self.state):
             return
+        self.members.heard_from(j, now)  # a State that moves it forward: its first of a round, taken
         if jump:
             self.catch_up(msg, now, left_behind)
             return
@@ -280,7 +280,7 @@ class RoundLoop:
         m = self.m
         lost = m.transport.lost_peers()
         m.replay.forget(lost)
-        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now)
+        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now, completing=m.updated)
         if now - self.last_progress > self.resend_wait:
             m.send_state()
             if m.updated:

@@ -3,8 +3,9 @@
 Robots come and go (the paper assumes they do not). :class:`Membership` holds the neighbours a
 round waits for (``active``): one whose liveliness token vanished (and did not come back within
 ``rejoin_wait`` seconds, the time a launcher needs to restart it), that stayed silent for
-``silent_after`` seconds while this node waited on it, or that sent only States this node
-refuses for that long, is left out, and the round finishes with the neighbours the node has.
+``silent_after`` seconds while this node waited on it (silent: no step forward, whatever it
+repeats; COMPLETE_WAIT times as long for the RoundComplete of a round whose State it sent), or
+that sent only States this node refuses for that long, is left out, and the round finishes with the neighbours the node has.
 It is taken back once it sends a State of the round at hand (at once) or of a later one (from
 the next round). Silence is counted while the node waits, not while it computes
 (:meth:`Membership.paused`).
@@ -39,6 +40,7 @@ from swarmmap.services.learner.transport import Envelope, Transport
 log = logging.getLogger("learner")
 Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): theirs pulled within the screen's limit
 REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
+COMPLETE_WAIT = 2  # a neighbour whose State of the round is here has this many times silent_after for its RoundComplete
 RESEND_BACKOFF = 8  # a round's messages go again after resend_after seconds, then twice as long, up to 8 times it
 
 
@@ -221,21 +223,27 @@ class Membership:
         for k in self.active:
             self.reunion.back(k, rnd)
 
-    def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
+    def check(self, needed: set[int], lost: set[int], rnd: int, now: float, completing: bool = False) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
-        refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``."""
+        refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``.
+        A neighbour is silent when it has not moved forward for ``silent_after`` seconds; once its
+        State of the round is here and only its RoundComplete is missing (``completing``), for
+        COMPLETE_WAIT times that (it may itself wait ``silent_after`` for a neighbour of its own
+        before its update)."""
         self.lost_since = {j: self.lost_since.get(j, now) for j in lost}
         r = self.rules
+        silent_after = r.silent_after * (COMPLETE_WAIT if completing else 1)
         for j in sorted(needed & self.active):
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
                 self.reunion.away.add(j)
-            elif now - self.heard[j] > r.silent_after:
-                self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
-                self.reunion.away.add(j)
             elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
                 self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
+            elif now - self.heard[j] > silent_after:
+                what = "sent no RoundComplete" if completing else "has been silent"
+                self.leave_out(j, f"{what} for {now - self.heard[j]:.0f} s", rnd)
+                self.reunion.away.add(j)
         if self.neighbours and not self.active:
             self.alone_since = self.alone_since or now
             if now - self.alone_since > r.peer_timeout:
@@ -311,12 +319,14 @@ class LateStates:
     def keep(self, j: int, r: int, params: np.ndarray) -> None:
         self.late[j] = (r, params)
 
-    def offer(self, msg: Envelope, judge) -> None:
+    def offer(self, msg: Envelope, judge) -> bool:
         """A State of another round is the neighbour's newest word: kept for a round that gets none
         from it when it is newer than the one kept and passes ``judge`` (nothing is replayed: a
-        node behind catches up by its rounds' timeouts)."""
-        if msg.kind == "state" and msg.round >= self.newest_round(msg.sender) and judge(msg):
+        node behind catches up by its rounds' timeouts). Whether it was kept."""
+        if msg.kind == "state" and msg.round > self.newest_round(msg.sender) and judge(msg):
             self.keep(msg.sender, msg.round, msg.params)
+            return True
+        return False
 
     def fill(self, used: dict[int, np.ndarray], active: set[int], rnd: int) -> dict[int, np.ndarray]:
         """``used`` (the States of round ``rnd``), with the newest late State of every active

@@ -2,7 +2,8 @@
 
 A node publishes on ``learners/<id>/state`` and ``learners/<id>/round-complete`` and
 subscribes to exactly its neighbours' keys; a State whose parameter vector has another length
-than this node's model is refused (counted, logged once). At most ``inbox_limit`` messages
+than this node's model, or a payload larger than twice its own State (:func:`state_bytes_limit`),
+is refused (counted, logged once). At most ``inbox_limit`` messages
 wait from any one neighbour (:class:`~swarmmap.services.learner.transport.Inbox`): a flood
 beyond that is dropped, counted and logged once. The neighbours' ``exchange`` liveliness
 tokens tell the exchange when one has left.
@@ -23,9 +24,15 @@ import numpy as np
 from swarmmap.services.learner.transport import Delivery, Inbox
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import StateFrame, encode_state
-from swarmmap.shared.wire.protocol import ProtocolError, RoundComplete, State, StateBody
+from swarmmap.shared.wire.protocol import MAX_COVERAGE_BYTES, ProtocolError, RoundComplete, State, StateBody
 
 log = logging.getLogger("learner")
+
+
+def state_bytes_limit(state_size: int) -> int:
+    """The largest State payload a node of ``state_size`` values takes: twice its float32 State
+    (a top-k State of every value carries an index beside each), its coverage bits and a header."""
+    return 8 * state_size + MAX_COVERAGE_BYTES + 65536
 
 
 class ZenohTransport:
@@ -48,7 +55,7 @@ class ZenohTransport:
                 raise ProtocolError("shape", f"a State of {msg.vector_size} values, this node's States have {state_size}")
 
         for j in sorted(neighbours):
-            bus.subscribe(bus.keys.state(j), State, self._on_state, check=check)
+            bus.subscribe(bus.keys.state(j), State, self._on_state, check=check, max_bytes=state_bytes_limit(state_size))
             bus.subscribe(bus.keys.round_complete(j), RoundComplete, self._on_complete)
 
         def on_alive(ident: str, alive: bool) -> None:

@@ -8,7 +8,10 @@ Usage::
         pub.put(State(run=..., sender=3, round=0, params=Tensor.of(theta)))
 
 Every refused payload is dropped with one log line per (key, reason) and counted in
-``bus.dropped``; the service keeps running. Data publishers are reliable and block rather
+``bus.dropped``; the service keeps running. A key whose payloads are refused again and again
+(REFUSALS_TO_MUTE within REFUSAL_WINDOW_S: a hostile member's flood) is muted: its payloads are
+dropped unread (counted as ``muted``) for MUTE_S seconds, then twice as long each time it starts
+again. Data publishers are reliable and block rather
 than drop when a receiver is slow, so no training point or State is lost to congestion.
 """
 
@@ -44,6 +47,7 @@ ROUTER_CLOSES_STUCK_S, CLIENT_CLOSES_STUCK_S = 2.0, 60.0
 # (the world's scans at time_scale 0) takes more than 2 s to take the next batch, and closing it
 # loses what was queued (zenoh.stuck_s; bench/links.py).
 LINKED_ROUTER_CLOSES_STUCK_S = 30.0
+REFUSALS_TO_MUTE, REFUSAL_WINDOW_S, MUTE_S = 20, 10.0, 10.0
 
 
 def zenoh_config(settings: ZenohSettings, who: str, run: str = "", policy: dict | None = None) -> zenoh.Config:
@@ -195,6 +199,9 @@ class Bus:
         self.received = RateCounter()
         self.dropped: collections.Counter[str] = collections.Counter()
         self._logged: set[tuple[str, str]] = set()
+        self._refusals: dict[str, collections.deque[float]] = collections.defaultdict(
+            lambda: collections.deque(maxlen=REFUSALS_TO_MUTE))
+        self._muted: dict[str, tuple[float, float]] = {}  # key -> (muted until, the next mute's length)
         self._handles: list[Any] = []
         self._tokens: dict[str, Any] = {}
         self.run_done: RunDone | None = None
@@ -301,15 +308,29 @@ class Bus:
         return pub
 
     def refuse(self, key: str, err: ProtocolError) -> None:
-        """Count a refused payload; log the first of each (key, reason)."""
+        """Count a refused payload; log the first of each (key, reason); mute a key that floods."""
         self.dropped[err.reason] += 1
         if (key, err.reason) not in self._logged:
             self._logged.add((key, err.reason))
             log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
+        now = time.monotonic()
+        times = self._refusals[key]
+        times.append(now)
+        if len(times) == REFUSALS_TO_MUTE and now - times[0] <= REFUSAL_WINDOW_S:
+            times.clear()
+            length = self._muted.get(key, (0.0, MUTE_S))[1]
+            self._muted[key] = (now + length, 2 * length)
+            log.warning("%d messages refused on %s within %.0f s: its further messages are dropped unread for %.0f s",
+                        REFUSALS_TO_MUTE, key, REFUSAL_WINDOW_S, length)
+
+    def muted(self, key: str) -> bool:
+        """Whether ``key``'s payloads are dropped unread now (it flooded this bus with refused ones)."""
+        until = self._muted.get(key)
+        return until is not None and time.monotonic() < until[0]
 
     def subscribe(self, key_expr: str, model: type[M], callback: Callable[[M], None], *,
                   sender_from_key: bool = True, check: Callable[[M], None] | None = None, newest: int = 0,
-                  direct: bool = False) -> None:
+                  direct: bool = False, max_bytes: int | None = None) -> None:
         """Call ``callback(message)`` for every valid ``model`` published on ``key_expr``.
 
         With ``sender_from_key`` the id in the key (``robots/<id>/``, ``learners/<id>/``) must
@@ -323,16 +344,21 @@ class Bus:
         own runs the callback, so that a slow callback never slows a publisher
         (bench/slow_subscriber.py). ``direct`` runs the callback in Zenoh's receiving thread itself:
         a callback that blocks then holds back the publishers (their back pressure) on purpose (a
-        lidar streamer whose inbox is full holds back the world's scans).
+        lidar streamer whose inbox is full holds back the world's scans). ``max_bytes``: a tighter
+        limit than the bus's for these messages (a learner's: a small multiple of its own State).
         """
+        limit = self.max_message_bytes if max_bytes is None else min(max_bytes, self.max_message_bytes)
 
         def handler(sample: zenoh.Sample) -> None:
             key = str(sample.key_expr)
+            if self._muted and self.muted(key):
+                self.dropped["muted"] += 1
+                return
             payload = sample.payload.to_bytes()
             self.received.add(key, len(payload))
             try:
                 sender = self.keys.ident_of(key) if sender_from_key else None
-                msg = decode(payload, model, run=self.keys.run, sender=sender, max_bytes=self.max_message_bytes)
+                msg = decode(payload, model, run=self.keys.run, sender=sender, max_bytes=limit)
                 if check is not None:
                     check(msg)
             except ProtocolError as err:

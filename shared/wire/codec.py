@@ -8,6 +8,7 @@ import functools
 import math
 import sys
 import warnings
+from dataclasses import dataclass
 
 import msgpack
 import numpy as np
@@ -216,6 +217,91 @@ def _decode_state_fast(payload: bytes, run: str, sender: int | None) -> State | 
                                  params=tensor)
 
 
+HEADER_BYTES = 512  # a message's header (v, kind, run, sender) lies within its first bytes
+HEADER_KEYS = ("v", "kind", "run", "sender")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """What a payload of one message kind may hold, checked while it is unpacked: its bytes (None:
+    the receiver's ``max_bytes``), its maps and arrays (``containers``), all its arrays' elements
+    together (``items``) and one map's entries (``entries``). A legitimate message of the kind
+    holds a few of each (a State's ``blocks`` one array a weight matrix): a payload of millions of
+    tiny maps is refused after the first few, in microseconds, not unpacked whole."""
+
+    max_bytes: int | None
+    containers: int
+    items: int
+    entries: int = 32
+
+
+MAX_MATRICES = 4096  # a lowrank State's blocks: one per weight matrix
+BOUNDS: dict[str, Bounds] = {
+    "State": Bounds(None, 16 + MAX_MATRICES, 16 + 5 * MAX_MATRICES),
+    "RoundComplete": Bounds(4096, 1, 0),
+    "Metrics": Bounds(16384, 1, 0),
+    "RunDone": Bounds(65536, 2, 10_000),
+    "Scan": Bounds(None, 8, 16),
+    "Samples": Bounds(None, 6, 16),
+    "WorldMap": Bounds(None, 16, 32),
+}
+
+
+def read_header(payload: bytes) -> dict:
+    """The header of a payload: the first entries of its top-level map, which must be v, kind,
+    run and sender (:func:`encode` writes them first), read from its first HEADER_BYTES bytes
+    with small limits; anything else is refused before the rest of the payload is looked at."""
+    up = msgpack.Unpacker(raw=False, max_buffer_size=HEADER_BYTES, max_str_len=128, max_bin_len=0, max_array_len=0,
+                          max_map_len=0, max_ext_len=0)
+    up.feed(payload[:HEADER_BYTES])
+    head: dict = {}
+    try:
+        n = up.read_map_header()
+        for _ in range(min(n, len(HEADER_KEYS))):
+            key = up.unpack()
+            if key not in HEADER_KEYS or key in head:
+                break
+            head[key] = up.unpack()
+    except Exception as exc:  # msgpack raises several unrelated exception types
+        raise ProtocolError("malformed", f"no message header (a map beginning with v, kind, run, sender): {exc}") from None
+    if len(head) < len(HEADER_KEYS):
+        raise ProtocolError("malformed", f"the header holds {sorted(head)}, not {', '.join(HEADER_KEYS)} first")
+    return head
+
+
+def unpack_bounded(payload: bytes, bounds: Bounds, max_bin: int) -> object:
+    """``payload`` unpacked within ``bounds`` (each map and array counted as it is made); msgpack's
+    own exceptions (of several types) or a ValueError when it is malformed or out of bounds."""
+    made = [0, 0]  # containers, array items
+
+    def count(obj, items: int = 0):
+        made[0] += 1
+        made[1] += items
+        if made[0] > bounds.containers or made[1] > bounds.items:
+            raise ValueError(f"more than {bounds.containers} maps and arrays or {bounds.items} array items")
+        return obj
+
+    return msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=max_bin, max_str_len=1 << 16,
+                           max_array_len=max(bounds.items, 1), max_map_len=bounds.entries, max_ext_len=0,
+                           object_hook=count, list_hook=lambda xs: count(xs, len(xs)))
+
+
+def check_header(head: dict, expected: type[Message], run: str, sender: int | None) -> None:
+    """Refuse a header of another kind, schema version, run or sender (before the body is read)."""
+    if head["kind"] != expected.KIND:
+        raise ProtocolError("kind", f"expected {expected.KIND}, got {head['kind']!r}")
+    readable = READ_VERSIONS.get(expected.KIND, range(OLDEST_VERSION, SCHEMA_VERSION + 1))
+    if head["v"] not in readable:
+        older = isinstance(head["v"], int) and head["v"] < min(readable)
+        raise ProtocolError("version", f"{expected.KIND} of schema version {head['v']!r}, this build reads "
+                                       f"{', '.join(map(str, readable))}"
+                            + (" (the sender runs an older swarmmap: run one version across the team)" if older else ""))
+    if head["run"] != run:
+        raise ProtocolError("wrong-run", f"run {head['run']!r}, expected {run!r}")
+    if sender is not None and head["sender"] != sender:
+        raise ProtocolError("unknown-sender", f"sender {head['sender']!r} on a key of {sender}")
+
+
 def decode(
     payload: bytes,
     expected: type[M],
@@ -227,41 +313,26 @@ def decode(
     """Decode and validate one payload as ``expected``; raise :class:`ProtocolError` if refused.
 
     ``sender`` (when given) is the id named by the key the payload arrived on: a message whose
-    own ``sender`` differs is refused, so nobody can speak for another robot.
+    own ``sender`` differs is refused, so nobody can speak for another robot. The header (kind,
+    version, run, sender) is read and judged first (:func:`read_header`), then the body within
+    the kind's :data:`BOUNDS` (its bytes at most ``max_bytes``, or the kind's own limit where
+    smaller), then its fields.
     """
-    if len(payload) > max_bytes:
-        raise ProtocolError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
+    bounds = BOUNDS.get(expected.KIND, Bounds(None, 64, 1 << 16))
+    limit = max_bytes if bounds.max_bytes is None else min(max_bytes, bounds.max_bytes)
+    if len(payload) > limit:
+        raise ProtocolError("oversized", f"{len(payload)} bytes > limit {limit} for a {expected.KIND}")
     if expected is State and isinstance(payload, bytes):
         fast = _decode_state_fast(payload, run, sender)
         if fast is not None:
             return fast  # type: ignore[return-value]
+    check_header(read_header(payload), expected, run, sender)
     try:
-        doc = msgpack.unpackb(
-            payload,
-            raw=False,
-            strict_map_key=True,
-            max_bin_len=max_bytes,
-            max_str_len=1 << 16,
-            max_array_len=1 << 16,
-            max_map_len=256,
-            max_ext_len=0,
-        )
+        doc = unpack_bounded(payload, bounds, limit)
     except Exception as exc:  # msgpack raises several unrelated exception types
-        raise ProtocolError("malformed", f"not msgpack: {exc}") from None
+        raise ProtocolError("malformed", f"not a {expected.KIND} within its bounds: {exc}") from None
     if not isinstance(doc, dict):
         raise ProtocolError("malformed", f"top level must be a map, got {type(doc).__name__}")
-    if doc.get("kind") != expected.KIND:
-        raise ProtocolError("kind", f"expected {expected.KIND}, got {doc.get('kind')!r}")
-    readable = READ_VERSIONS.get(expected.KIND, range(OLDEST_VERSION, SCHEMA_VERSION + 1))
-    if doc.get("v") not in readable:
-        older = isinstance(doc.get("v"), int) and doc["v"] < min(readable)
-        raise ProtocolError("version", f"{expected.KIND} of schema version {doc.get('v')!r}, this build reads "
-                                       f"{', '.join(map(str, readable))}"
-                            + (" (the sender runs an older swarmmap: run one version across the team)" if older else ""))
-    if doc.get("run") != run:
-        raise ProtocolError("wrong-run", f"run {doc.get('run')!r}, expected {run!r}")
-    if sender is not None and doc.get("sender") != sender:
-        raise ProtocolError("unknown-sender", f"sender {doc.get('sender')!r} on a key of {sender}")
     try:
         return expected.model_validate(doc)
     except ValidationError as exc:

@@ -25,6 +25,7 @@ SCHEMA_VERSION = 2
 READ_VERSIONS = {"State": (2,)}
 OLDEST_VERSION = 1
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+MAX_DETAIL_CHARS = 240  # a refusal's detail, at most (it names what the message held)
 
 NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -38,6 +39,8 @@ class ProtocolError(ValueError):
     """A payload that a receiver refuses; ``reason`` is a short tag used for counting."""
 
     def __init__(self, reason: str, detail: str):
+        if len(detail) > MAX_DETAIL_CHARS:  # (a detail may quote the sender's data: never unbounded into a log)
+            detail = f"{detail[: MAX_DETAIL_CHARS - 40]}... ({len(detail)} characters)"
         super().__init__(f"{reason}: {detail}")
         self.reason = reason
         self.detail = detail

@@ -30,10 +30,13 @@ from typing import Any
 
 import msgpack
 
+from swarmmap.shared.wire.codec import Bounds, unpack_bounded
+
 MAGIC = b"SWMREC01"
 VERSION = 1
 _FRAME = struct.Struct("<II")
 MAX_FRAME_BYTES = 64 * 1024 * 1024
+FRAME_BOUNDS = Bounds(MAX_FRAME_BYTES, containers=10_000, items=100_000, entries=1024)  # a header's config at most
 
 
 class RecordingError(ValueError):
@@ -125,7 +128,7 @@ def _frames(path: Path, data: bytes) -> Iterator[dict[str, Any]]:
         if zlib.crc32(body) != crc:
             raise RecordingError(path, f"checksum mismatch in frame {index}: the file is corrupt")
         try:
-            doc = msgpack.unpackb(body, raw=False, strict_map_key=True, max_ext_len=0)
+            doc = unpack_bounded(body, FRAME_BOUNDS, MAX_FRAME_BYTES)
         except Exception as exc:  # msgpack raises several unrelated types
             raise RecordingError(path, f"frame {index} is not msgpack: {exc}") from None
         if not isinstance(doc, dict) or "kind" not in doc:

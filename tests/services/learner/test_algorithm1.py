@@ -368,6 +368,68 @@ def test_a_neighbour_whose_every_state_is_refused_is_left_out_and_the_rounds_go_
     assert "has sent only States this node refuses" in caplog.text
 
 
+def hostile_pair(send, silent_after=1.0, rounds=5):
+    """Nodes 0 and 1 run ``rounds`` rounds of a triangle whose third member (2) only does what
+    ``send(queue)`` puts in their inboxes (every 50 ms). Returns their results, stats and the wall time."""
+    graph = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
+    hub = MemoryHub(graph)
+    done = threading.Event()
+
+    def hostile():
+        while not done.is_set():
+            for q in (0, 1):
+                send(hub.queues[q])
+            done.wait(0.05)
+
+    init = {i: np.linspace(1, 2, 8) + 0.01 * i for i in (0, 1)}
+    stats, results = {0: ExchangeStats(), 1: ExchangeStats()}, {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], rounds, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
+                                    linger=0.2, stats=stats[i], silent_after=silent_after, peer_timeout=20,
+                                    check_state=lambda theirs, own: implausible(theirs, own, 0.5))
+
+    threads = [threading.Thread(target=hostile)] + [threading.Thread(target=node, args=(i,)) for i in (0, 1)]
+    t0 = time.monotonic()
+    for t in threads:
+        t.start()
+    for t in threads[1:]:
+        t.join(30)
+    wall = time.monotonic() - t0
+    done.set()
+    threads[0].join(5)
+    return results, stats, wall
+
+
+def test_a_member_that_sends_only_far_future_states_is_silent_and_left_out(caplog):
+    """States of rounds far ahead (and RoundCompletes without a State) are no step forward: the
+    member is left out as silent, its States counted as refused, and the others finish."""
+
+    def send(q):
+        for r in range(50, 56):
+            q.put(Envelope("state", 2, r, np.linspace(1, 2, 8)))
+        for r in range(56):
+            q.put(Envelope("complete", 2, r))
+
+    results, stats, _ = hostile_pair(send)
+    assert set(results) == {0, 1}
+    assert all(s.left_out == 1 and s.refused["far-future"] >= 1 and s.rounds_done == 5 for s in stats.values())
+    assert "neighbour 2 has been silent" in caplog.text
+
+
+def test_a_member_that_repeats_its_state_without_a_round_complete_is_left_out(caplog):
+    """A member whose State of round 0 comes again and again, never with a RoundComplete, is
+    left out once COMPLETE_WAIT x silent_after has passed without one; the others finish."""
+
+    def send(q):
+        q.put(Envelope("state", 2, 0, np.linspace(1, 2, 8) + 0.02))
+
+    results, stats, _ = hostile_pair(send)
+    assert set(results) == {0, 1}
+    assert all(s.left_out == 1 and s.rounds_done == 5 for s in stats.values())
+    assert "neighbour 2 sent no RoundComplete" in caplog.text
+
+
 def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):
     """run_timed for every node of ``graph`` in threads; each round takes ``round_s`` of compute
     (``rounds`` may be a dict: node -> its rounds). Returns results, stats, States sent per node."""

@@ -52,6 +52,31 @@ def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
 
 
 @pytest.mark.integration
+def test_a_key_that_floods_refused_payloads_is_muted_and_its_bombs_are_not_unpacked(zenoh_pair, run_id):
+    """A member that sends object bombs (a valid header, then a million empty maps) again and
+    again: each is refused by its bounds, and after REFUSALS_TO_MUTE of them in a few seconds
+    its key is muted: what it sends next, a valid State too, is dropped unread and counted."""
+    from swarmmap.shared.wire.bus import REFUSALS_TO_MUTE
+
+    a_settings, b_settings = zenoh_pair
+    keys = Keys("swarmmap", run_id)
+    got: list[State] = []
+    with Bus.open(a_settings, keys, "learner", 0) as a, Bus.open(b_settings, keys, "learner", 1) as b:
+        b.subscribe(keys.state(0), State, got.append, check=three_params)
+        b.announce()
+        assert wait_until(lambda: ("learner", "1") in a.alive("learner"), 10)
+        raw = a.session.declare_publisher(keys.state(0))
+        head = msgpack.packb({"v": 2, "kind": "State", "run": run_id, "sender": 0, "round": 0})
+        bomb = b"\xde\x00\x06" + head[1:] + msgpack.packb("params") + b"\xdd" + (1 << 20).to_bytes(4, "big") + b"\x80" * (1 << 20)
+        for _ in range(REFUSALS_TO_MUTE):
+            raw.put(bomb)
+        assert wait_until(lambda: b.dropped["malformed"] == REFUSALS_TO_MUTE, 10)
+        a.publisher(keys.state(0)).put(State(run=run_id, sender=0, round=1, params=Tensor.of(np.ones(3, np.float32))))
+        assert wait_until(lambda: b.dropped["muted"] == 1, 10)
+        assert got == [] and b.muted(keys.state(0))
+
+
+@pytest.mark.integration
 def test_algorithm1_between_two_processes_matches_reference(zenoh_pair, run_id, tmp_path):
     rounds = 8
     procs = []

@@ -253,3 +253,49 @@ def test_a_states_coverage_round_trips_and_a_bad_one_is_refused():
         doc = raw(msg)
         doc["coverage"] = raw(bad)
         assert refused(msgpack.packb(doc)) == "shape"
+
+
+def bomb(kind: str, depth: int, width: int, **header) -> bytes:
+    """A payload with a valid header of ``kind`` whose next field is ``width ** depth`` empty
+    maps nested ``depth`` arrays deep (the object bomb: millions of objects in a few MB)."""
+    head = {"v": 2, "kind": kind, "run": RUN, "sender": 2, **header}
+    leaf = b"\x80"  # an empty map
+    for _ in range(depth):
+        leaf = b"\xdd" + width.to_bytes(4, "big") + leaf * width
+    body = msgpack.packb(head)[1:]  # the header's entries, without their map's own header
+    return b"\xde" + (len(head) + 1).to_bytes(2, "big") + body + msgpack.packb("params") + leaf
+
+
+@pytest.mark.parametrize("kind,model", [("State", State), ("RoundComplete", RoundComplete), ("Metrics", Metrics)])
+def test_an_object_bomb_is_refused_within_its_kinds_bounds_without_being_unpacked(kind, model):
+    """Four million empty maps (4 MB) under a valid header: refused by the kind's bounds (a
+    State may hold a few thousand maps and arrays, a RoundComplete one) after the first few,
+    never built: the decode allocates next to nothing."""
+    import tracemalloc
+
+    payload = bomb(kind, depth=2, width=2048, round=1)
+    assert len(payload) > 4_000_000
+    tracemalloc.start()
+    with pytest.raises(ProtocolError) as err:
+        decode(payload, model, run=RUN, sender=2)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert err.value.reason in ("malformed", "oversized")
+    assert peak < 2_000_000, f"{peak} bytes allocated to refuse it"
+
+
+def test_a_payload_whose_header_does_not_come_first_is_refused_before_its_body():
+    """The header (v, kind, run, sender) is read from a message's first bytes: a payload that
+    puts anything before it is refused as malformed, whatever follows."""
+    doc = {"params": [0] * 10, "v": 2, "kind": "RoundComplete", "run": RUN, "sender": 2, "round": 1}
+    with pytest.raises(ProtocolError, match="header") as err:
+        decode(msgpack.packb(doc), RoundComplete, run=RUN, sender=2)
+    assert err.value.reason == "malformed"
+
+
+def test_a_refusal_never_repeats_a_long_message_into_the_log():
+    """A refusal's detail is bounded, whatever the payload held (a 1 MB run name, say)."""
+    payload = msgpack.packb({"v": 2, "kind": "RoundComplete", "run": RUN, "sender": 2, "round": "x" * 1_000_000})
+    with pytest.raises(ProtocolError) as err:
+        decode(payload, RoundComplete, run=RUN, sender=2)
+    assert len(str(err.value)) < 300
