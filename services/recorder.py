@@ -54,7 +54,7 @@ from swarmmap.shared.run.disk import disk_words, is_full, write_problem
 from swarmmap.shared.run.progress import PROGRESS_EVERY_S, TeamProgress, TraversalProgress, duration
 from swarmmap.shared.run.rundir import read_summary, run_state
 from swarmmap.shared.wire.bus import Bus
-from swarmmap.shared.wire.protocol import Keys, Metrics, RunDone, Scan, WorldMap
+from swarmmap.shared.wire.protocol import Keys, Metrics, ProtocolError, RunDone, Scan, WorldMap
 
 log = logging.getLogger("recorder")
 
@@ -258,9 +258,15 @@ class RunTracker:
 
 
 class StallWatch:
-    """When the run last made progress (a new Metrics or scan) and, once it has made none for
-    ``timeout`` seconds, who holds it up: the learners that reported nothing, else the unfinished
-    ones whose newest round is the lowest. Pure bookkeeping, like RunTracker."""
+    """When the run last made progress and, once it has made none for ``timeout`` seconds, who
+    holds it up: the learners that reported nothing, else the unfinished ones whose newest round is
+    the lowest. Pure bookkeeping, like RunTracker.
+
+    Progress is the team's, so that no member can fake it: a scan of the traversal, a learner
+    that finishes, or a new round reached by a majority of the learners (the round that
+    ``robots // 2 + 1`` of them have reached) while none has finished. A member that reports a new
+    round now and then while the others wait on it, or goes on alone after the others have
+    finished, moves none of these."""
 
     def __init__(self, robots: int, timeout: float, now: float | None = None):
         self.robots, self.timeout = robots, timeout
@@ -271,15 +277,24 @@ class StallWatch:
         self._lock = threading.Lock()
 
     def on_metrics(self, m: Metrics, now: float | None = None) -> None:
-        """A learner reported: progress when its round is newer or it has just finished (a finished
-        learner says its final Metrics again until the run is over: no progress), and its newest round."""
+        """A learner reported its newest round: progress when it has just finished (a finished
+        learner says its final Metrics again until the run is over: no progress) or, while none
+        has finished, when a majority of the learners has reached a new round."""
         with self._lock:
-            if m.round > self.rounds.get(m.sender, -1) or (m.final and m.sender not in self.finished):
+            if m.sender >= self.robots:
+                return
+            before = self._majority_round()
+            self.rounds[m.sender] = max(m.round, self.rounds.get(m.sender, -1))
+            newly_finished = m.final and m.sender not in self.finished
+            if newly_finished or (not self.finished and self._majority_round() > before):
                 self.last = time.monotonic() if now is None else now
-            if m.sender < self.robots:
-                self.rounds[m.sender] = max(m.round, self.rounds.get(m.sender, -1))
-                if m.final:
-                    self.finished.add(m.sender)
+            if m.final:
+                self.finished.add(m.sender)
+
+    def _majority_round(self) -> int:
+        """The newest round that a majority of the learners (``robots // 2 + 1``) have reported."""
+        reached = sorted((self.rounds.get(r, -1) for r in range(self.robots)), reverse=True)
+        return reached[self.robots // 2]
 
     def on_scan(self, now: float | None = None) -> None:
         """A robot scanned: progress of the traversal."""
@@ -493,6 +508,22 @@ class Recorder:
                 log.info("robot %d round %4d  val_bce %.4f  consensus %.4f%s", m.sender, m.round, m.val_bce,
                      m.consensus_error, "  (final)" if m.final else "")
 
+    def check_metrics(self, m: Metrics) -> None:
+        """Refuse (ProtocolError, counted by the bus) Metrics that no learner of this run sends: of
+        a robot the run does not have, of a round beyond ``learner.rounds``, final before the last
+        round, or of an earlier round than its process reported already (a restarted learner, a
+        new pid, reports some rounds again). With them a learner writes at most two rows a round."""
+        rounds = self.cfg.rounds()
+        if m.sender >= self.cfg.robots:
+            raise ProtocolError("unknown-sender", f"Metrics of robot {m.sender}; the run has {self.cfg.robots}")
+        if m.round > rounds or (m.final and m.round != rounds):
+            raise ProtocolError("beyond-rounds", f"{'final ' if m.final else ''}Metrics of round {m.round} from learner "
+                                                 f"{m.sender}; the run has {rounds} rounds")
+        last = self.metrics.latest.get(m.sender)
+        if last is not None and last.pid == m.pid and m.round < last.round:
+            raise ProtocolError("out-of-order", f"Metrics of round {m.round} from learner {m.sender} after its round "
+                                                f"{last.round}")
+
     def on_scan(self, scan: Scan) -> None:
         """A robot's scan: progress, and the traversal's line."""
         self.stall.on_scan()
@@ -552,7 +583,7 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     rec = Recorder(cfg)
     keys = Keys(cfg.key_prefix, cfg.run_id)
     with Bus.open(cfg.zenoh, keys, "recorder", 0) as bus:
-        bus.subscribe(keys.metrics("*"), Metrics, rec.on_metrics)
+        bus.subscribe(keys.metrics("*"), Metrics, rec.on_metrics, check=rec.check_metrics)
         bus.subscribe(keys.scan("*"), Scan, rec.on_scan)
         for service in ("learner", "lidar", "world", "router"):  # a robot host's router: is its host reachable?
             bus.watch_alive(service, lambda ident, alive, service=service: rec.tracker.on_alive(service, ident, alive))

@@ -229,3 +229,58 @@ def test_the_summary_says_when_the_run_started_and_finished(tmp_path):
     rec = MetricsRecorder(tmp_path / "metrics.csv")
     doc = summary(resolve({"robots": 1}, environ={}), rec, True, "all 1 learners finished", 30.0, started=1000.0)
     assert doc["started"] == 1000.0 and abs(doc["finished"] - time.time()) < 5
+
+
+def test_a_member_that_reports_a_new_round_now_and_then_hides_no_stall():
+    """Progress is the team's: one learner reporting a new round every 500 s while the others
+    are stuck (or after they have finished) does not keep a 600 s stall timeout from firing."""
+    from swarmmap.services.recorder import StallWatch
+
+    w = StallWatch(3, timeout=600, now=0)
+    for r in range(3):
+        w.on_metrics(metrics(r, 5), now=1)
+    for k, t in enumerate(range(500, 5000, 500)):
+        w.on_metrics(metrics(1, 6 + k), now=t)
+        if t >= 601:
+            assert w.stalled(now=t) is not None, f"no stall at {t} s"
+    assert w.held_up_by() == [0, 2]
+    two = StallWatch(2, timeout=600, now=0)
+    two.on_metrics(metrics(0, 100, final=True), now=10)
+    for k, t in enumerate(range(500, 3000, 500)):
+        two.on_metrics(metrics(1, 1 + k), now=t)
+    assert "learner(s) [1]" in two.stalled(now=611)
+
+
+def test_the_recorder_refuses_metrics_no_learner_of_the_run_sends(tmp_path):
+    """Beyond the run's rounds, a final one before the last round, a robot the run does not have,
+    or an earlier round from the same process: refused; a restarted learner (another pid) may
+    report its rounds again. A flood of new rounds writes at most the run's rows."""
+    import pytest
+
+    from swarmmap.services.recorder import Recorder
+    from swarmmap.shared.wire.protocol import ProtocolError
+
+    cfg = RunConfig(run_dir=tmp_path, robots=2, learner={"rounds": 10})
+    rec = Recorder(cfg)
+
+    def send(robot, rnd, final=False, pid=7):
+        m = metrics(robot, rnd, final).model_copy(update={"pid": pid})
+        rec.check_metrics(m)
+        rec.on_metrics(m)
+
+    send(0, 4)
+    for bad, reason in (((0, 11), "beyond-rounds"), ((0, 5, True), "beyond-rounds"), ((2, 1), "unknown-sender"),
+                        ((0, 3), "out-of-order")):
+        with pytest.raises(ProtocolError) as err:
+            send(*bad)
+        assert err.value.reason == reason
+    send(0, 3, pid=8)  # restarted: its checkpoint's rounds again
+    refused = 0
+    for rnd in range(100_000):
+        try:
+            send(1, rnd % 50_000, pid=9 + rnd // 50_000)
+        except ProtocolError:
+            refused += 1
+    rec.metrics.close()
+    rows = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert refused == 100_000 - 22 and len(rows) == 1 + 2 + 11
