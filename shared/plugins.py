@@ -97,8 +97,11 @@ class AttackPlugin:
     view: write into it), given ``liar`` (services/learner/attacks.py's Liar: its seeded ``rng``, a
     ``direction(n)``, the ``rho`` mask of a Bayesian network's spreads, the ``out`` layer's indices);
     None for an attack that changes no value; ``sends``: ``lie`` (the lie instead of the State),
-    ``both`` (the honest State and the lie: two stories a round) or ``nothing`` (RoundCompletes,
-    never a State); ``models``: the learner models it applies to (None: any)."""
+    ``both`` (the honest State and the lie: two stories a round), ``nothing`` (RoundCompletes,
+    never a State), ``ahead`` (its State as one of three rounds ahead, no RoundComplete),
+    ``repeat`` (its first State again and again, no RoundComplete), ``bomb`` (object bombs instead
+    of its messages) or ``metrics`` (honest States, a flood of Metrics); ``models``: the learner
+    models it applies to (None: any)."""
 
     lie: Callable[[Any, Any], None] | None
     summary: str
@@ -259,7 +262,7 @@ def report() -> tuple[list[str], int]:
             except PluginError as exc:
                 refused += 1
                 what = f"REFUSED: {exc}"
-            lines.append(f"  {plugin.name:<12} {plugin.origin():<28} {what}")
+            lines.append(f"  {plugin.name:<13} {plugin.origin():<28} {what}")
         if not parts:
             lines.append("  (none installed)")
     return lines, refused

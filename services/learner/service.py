@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.algorithm1 import Algorithm1, RoundLoop
-from swarmmap.services.learner.attacks import HostileTransport
+from swarmmap.services.learner.attacks import HostileTransport, flood_metrics
 from swarmmap.services.learner.centralized import train_centralized
 from swarmmap.services.learner.checkpoints import Checkpoints
 from swarmmap.services.learner.clock import ClockExchange
@@ -138,6 +138,8 @@ class RobotLearner:
                                     list(inputs.layout.matrices))
             transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
             transport = hostile(cfg, self.robot, transport, inputs.layout)
+            if isinstance(transport, HostileTransport) and transport.liar.plugin.sends == "metrics":
+                flood_metrics(self.metrics_pub.put, cfg.run_id, self.robot)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
             public = partial(public_state, self.codec)  # (the consensus terms use what the neighbours hold)
         self.node = make_node(s.algorithm, inputs, RuleChoice.of(s, self.graph, self.robot, public))

@@ -95,6 +95,10 @@ class ZenohTransport:
     def send_round_complete(self, round: int) -> None:
         self.complete_pub.put(RoundComplete(run=self.run, sender=self.node, round=round))
 
+    def send_raw(self, kind: str, payload: bytes) -> None:
+        """``payload`` as it is on this node's ``state`` or ``complete`` key (a hostile member's bombs)."""
+        (self.state_pub if kind == "state" else self.complete_pub).put_bytes(payload)
+
     def receive(self, timeout: float) -> Delivery | None:
         return self.inbox.get(timeout)
 

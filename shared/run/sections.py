@@ -463,7 +463,9 @@ class FaultSettings(Section):
                             "own credentials), an attack plug-in (swarmmap plugins lists those installed): ratchet (a random "
                             "direction at 0.45 of the norm, anew each round), signflip (the output layer negated), scale "
                             "(x 1.45), noise (0.05 of the norm), sigma (a BNN's rho lowered by 2, its means moved), stall "
-                            "(RoundCompletes, never a State), equivocate (two States a round); none: no attack; see "
+                            "(RoundCompletes, never a State), equivocate (two States a round), far-future (States of three "
+                            "rounds ahead), repeat (its first State again and again), bomb (object bombs), metrics-flood "
+                            "(Metrics of a new round as fast as it can for 2 s); none: no attack; see "
                             "services/learner/attacks.py")
     attackers: list[int] = Field(default_factory=list, description="the robots whose learners attack (attack); empty: none")
 
