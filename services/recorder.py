@@ -422,6 +422,7 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "bytes_sent": last.bytes_sent if last else None,
             "bytes_received": last.bytes_received if last else None,
             "refused": last.refused if last else None,
+            "repeated_samples": last.repeated_samples if last else None,
         }
     started = time.time() - wall if started is None else started
     doc = {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),

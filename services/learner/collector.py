@@ -2,7 +2,9 @@
 
 Offline it keeps every scan's points until the traversal ends; online only the newest
 ``window_scans`` scans' (DiNNO's sliding window), so that a long traversal does not grow the
-learner's memory without bound.
+learner's memory without bound. A scan is taken once: Samples whose sequence number it has
+taken already (a restarted world drives its traversal again from the start) are dropped and
+counted (``repeated``), so a restart leaves the training points those of a clean run.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ class Collector:
         self.done = threading.Event()
         self.first = threading.Event()
         self.refused = 0  # Samples after the one marked last
+        self.repeated = 0  # Samples of a scan taken already (a restarted world's)
+        self.newest_seq = -1
         self.position: tuple[float, float] | None = None  # where the robot was at its newest scan
         self._lock = threading.Lock()
 
@@ -41,6 +45,14 @@ class Collector:
                                 msg.sender, msg.seq)
                 self.refused += 1
                 return
+            if msg.seq <= self.newest_seq:
+                if self.repeated == 0:
+                    log.warning("robot %d: Samples of scan %d again, after scan %d (the world restarted its traversal?): "
+                                "dropped until a new scan comes; further ones are only counted", msg.sender, msg.seq,
+                                self.newest_seq)
+                self.repeated += 1
+                return
+            self.newest_seq = msg.seq
             self.points.append(msg.points.numpy())
             self.labels.append(msg.labels.numpy())
             self.position = (float(msg.position[0]), float(msg.position[1]))

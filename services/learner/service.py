@@ -195,7 +195,8 @@ class RobotLearner:
                        consensus_error=consensus_error(params_of(theta), {j: params_of(p) for j, p in peers.items()}),
                        bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
                        compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
-                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final)
+                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]),
+                       repeated_samples=self.collector.repeated, final=final)
 
     def publish(self, msg: Metrics, theta: np.ndarray) -> Metrics:
         """Publish ``msg`` (and, in process, the State it was taken of, for the observer)."""

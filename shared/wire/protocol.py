@@ -425,6 +425,7 @@ class Metrics(Message):
     n_points: Annotated[int, Field(ge=0)] = 0
     pid: Annotated[int, Field(ge=0)] = 0
     refused: Annotated[int, Field(ge=0)] = 0
+    repeated_samples: Annotated[int, Field(ge=0)] = 0  # Samples of scans it had already (a restarted world's), dropped
     final: bool = False
 
 

@@ -25,3 +25,15 @@ def test_online_keeps_only_the_window_and_offline_every_scan():
     assert points.shape == (500, 2) and points[0, 0] == 950 and points[-1, 0] == 999
     assert online.arrays(5)[0][0, 0] == 995
     assert offline.arrays()[0].shape == (10_000, 2)
+
+
+def test_a_restarted_worlds_scans_are_taken_once():
+    """A world restarted mid-traversal drives it again from scan 0: the scans the learner has are
+    dropped and counted, the new ones taken, and the points are a clean traversal's."""
+    clean, restarted = Collector(), Collector()
+    for seq in range(100):
+        clean.add(samples(seq, last=seq == 99))
+    for seq in [*range(40), *range(100)]:
+        restarted.add(samples(seq, last=seq == 99))
+    assert restarted.repeated == 40 and restarted.done.is_set()
+    np.testing.assert_array_equal(restarted.arrays()[0], clean.arrays()[0])
