@@ -53,7 +53,8 @@ class ServiceKind:
     ``restart``: a crashed one is started again (``up.restarts`` times); ``grace``: the ``up``
     field of its time to stop (default ``stop_grace_s``); ``compute``: it trains (the SLURM job
     gives it CPUs of its own, and GPUs); ``ends_run``: the run is over when it exits (the
-    recorder); ``rank``: its place in listings (identities, the policy)."""
+    recorder); ``optional``: the run goes on when it exits, whatever its status (the observer: a
+    viewer that fails never fails a run); ``rank``: its place in listings (identities, the policy)."""
 
     summary: str
     runner: str | None
@@ -68,6 +69,7 @@ class ServiceKind:
     grace: str | None = None
     compute: bool = False
     ends_run: bool = False
+    optional: bool = False
     rank: int = 100
 
     def ids(self, cfg: Any) -> list[int | None]:
@@ -109,7 +111,8 @@ RECORDER = ServiceKind("The recorder: writes the run directory (config, metrics,
 OBSERVER = ServiceKind("The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
                        "swarmmap.services.observer:run", section="observer",
                        reads=lambda keys, i, run: [keys.metrics("*"), keys.scan("*"), keys.state("*"), keys.world_map()],
-                       up_order=20, instances=lambda cfg: [0] if cfg.up.observer else [], grace="observer_grace_s", rank=2)
+                       up_order=20, instances=lambda cfg: [0] if cfg.up.observer else [], grace="observer_grace_s",
+                       optional=True, rank=2)
 WORLD = ServiceKind("The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
                     "swarmmap.services.world:run", section="world",
                     speaks=lambda keys, i, run: [keys.scan("*"), keys.world_map()],
