@@ -56,7 +56,7 @@ from swarmmap.shared.run.config import ConfigError, RunConfig, fail, validate_co
 from swarmmap.shared.run.disk import disk_words
 from swarmmap.shared.run.fingerprint import fingerprint_diff, settings_fingerprint
 from swarmmap.shared.run.progress import TeamProgress, TraversalProgress
-from swarmmap.shared.run.rundir import config_doc, local_time, read_summary, run_state
+from swarmmap.shared.run.rundir import RunDirBusy, config_doc, hold_run_dir, local_time, read_summary, run_state
 from swarmmap.shared.run.runtime import die_with_parent
 from swarmmap.shared.run.slots import slots_dir
 from swarmmap.shared.wire.bus import Bus
@@ -182,6 +182,12 @@ class Child:
         return f"{self.service}-{self.ident}"
 
 
+
+def optional(child: Child) -> bool:
+    """Whether the run goes on when ``child`` exits (the observer)."""
+    k = kinds().get(child.service)
+    return k is not None and k.optional
+
 class Launcher:
     """Starts, watches and stops the services of one run; with a ``console`` it shows the run's
     progress and ends with the closing block (``swarmmap up``), without one it only logs."""
@@ -200,6 +206,7 @@ class Launcher:
         self.run_dir = self.cfg.run_dir
         self.keys = Keys(self.cfg.key_prefix, self.cfg.run_id)
         self.children: list[Child] = []
+        self.gone: set[str] = set()  # optional services that exited, told of once
         self.config_path = self.run_dir / "config.yaml"
         self.team = TeamProgress(self.cfg.robots, self.cfg.learner.rounds)
         self.traversal = TraversalProgress(self.cfg.robots)
@@ -285,8 +292,18 @@ class Launcher:
         self.start(child, "a")
 
     def failed(self) -> Child | None:
-        """A service that exited with an error."""
-        return next((c for c in self.children if c.proc.poll() not in (None, 0)), None)
+        """A service that exited with an error (an optional one, the observer, is told of once and
+        the run goes on without it)."""
+        for c in self.children:
+            if c.proc.poll() in (None, 0):
+                continue
+            if not optional(c):
+                return c
+            if c.name not in self.gone:
+                self.gone.add(c.name)
+                log.warning("%s exited with status %s; the run goes on without it (it is optional). Its log (%s) ends:\n%s",
+                            c.name, c.proc.returncode, c.log_path, tail(c.log_path, 5))
+        return None
 
     def wait_alive(self, bus: Bus, service: str, idents: set[str]) -> None:
         """Wait until ``service`` ``idents`` are alive; raises RuntimeError when one exited or none came in time."""
@@ -479,7 +496,7 @@ class Launcher:
             for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
                 if self.restartable(c) and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
                     self.restart(c)
-            if (refused := next((c for c in self.children if c.proc.poll() == REFUSED), None)) is not None:
+            if (refused := next((c for c in self.children if c.proc.poll() == REFUSED and not optional(c)), None)) is not None:
                 self.failure, self.failure_code = failure_reason(refused), REFUSED
                 log.error("%s; ending the run now (a refusal would only repeat). Its log (%s) ends:\n%s",
                           self.failure, refused.log_path, tail(refused.log_path))
@@ -596,11 +613,16 @@ def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
         return 2
-    if (why := run_dir_problem(cfg)) is not None:
-        log.error("refusing to prepare: %s", why)
+    try:
+        with hold_run_dir(cfg.run_dir, "swarmmap prepare"):
+            if (why := run_dir_problem(cfg)) is not None:
+                log.error("refusing to prepare: %s", why)
+                return 2
+            check_run(cfg, endpoints=True)
+            print(write_config(cfg))
+    except RunDirBusy as exc:
+        log.error("refusing to prepare: %s", exc)
         return 2
-    check_run(cfg, endpoints=True)
-    print(write_config(cfg))
     return 0
 
 
@@ -665,7 +687,12 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     except (RecordingError, PlanError) as exc:
         log.error("%s", exc)
         return 2
-    if (why := run_dir_problem(launcher.cfg)) is not None:
-        log.error("refusing to start: %s", why)
+    try:
+        with hold_run_dir(launcher.cfg.run_dir, "swarmmap up"):
+            if (why := run_dir_problem(launcher.cfg)) is not None:
+                log.error("refusing to start: %s", why)
+                return 2
+            return launcher.run()
+    except RunDirBusy as exc:
+        log.error("refusing to start: %s", exc)
         return 2
-    return launcher.run()

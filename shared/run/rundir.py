@@ -10,10 +10,14 @@ summary and the team's curve. The experiments, the run tools (``status``, ``runs
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import json
+import os
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -186,3 +190,40 @@ def unused_path(path: Path) -> Path:
 def local_time(epoch: float | None) -> str:
     """``2025-01-31 14:05:09`` in local time; "" for None."""
     return "" if epoch is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(epoch))
+
+
+LOCK_FILE = ".swarmmap.lock"
+
+
+class RunDirBusy(RuntimeError):
+    """Another swarmmap process holds the run directory (its ``up`` or ``prepare``)."""
+
+
+@contextlib.contextmanager
+def hold_run_dir(run_dir: Path, what: str) -> Iterator[None]:
+    """Hold ``run_dir`` for this process (``what``: ``swarmmap up``, ``swarmmap prepare``) while the
+    block runs: an exclusive lock on its LOCK_FILE, taken at once or refused with
+    :class:`RunDirBusy` naming the holder. Two launchers never prepare or run one directory at
+    once. A directory this made and the block leaves empty (its checks refused the run) is removed."""
+    made = not run_dir.exists()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+            raise RunDirBusy(f"{run_dir} is held by {holder}: one launcher at a time prepares or runs a run directory; "
+                             "wait for it to end, or choose another --run-dir") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{what} (pid {os.getpid()})\n".encode(), 0)
+        try:
+            yield
+        finally:
+            if made and [p.name for p in run_dir.iterdir()] == [LOCK_FILE]:
+                path.unlink(missing_ok=True)
+                with contextlib.suppress(OSError):
+                    run_dir.rmdir()
+    finally:
+        os.close(fd)
