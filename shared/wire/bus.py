@@ -31,7 +31,7 @@ import zenoh
 from swarmmap.shared.run.config import ConfigError, ZenohSettings
 from swarmmap.shared.wire.codec import decode, encode
 from swarmmap.shared.wire.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, Tensor, WorldMap
-from swarmmap.shared.wire.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, enrol, own_folder
+from swarmmap.shared.wire.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, clock_problem, enrol, own_folder
 from swarmmap.shared.wire.services import identity
 from swarmmap.shared.world.sensing import draw_validation
 
@@ -224,6 +224,9 @@ class Bus:
             hint = "" if settings.insecure or settings.mode == "router" else (
                 f" (a secure client trusts only run {keys.run}'s router, by its certificate: the endpoint's host must be "
                 "one it names, the hosts of zenoh.connect when the credentials were made)")
+            clock = None if settings.insecure or settings.secrets is None else clock_problem(
+                own_folder(settings.secrets, who, keys.run))
+            hint = f" ({clock})" if clock is not None else hint
             raise ConfigError(f"config error:\n  zenoh: cannot open a session with {given or 'the defaults'}: "
                               f"{str(exc).split(' at /')[0]}{hint}") from None
         return cls(session, keys, service, ident)

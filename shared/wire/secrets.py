@@ -50,6 +50,7 @@ from swarmmap.shared.wire.services import Access, identities, policy_keys
 log = logging.getLogger(__name__)
 
 CA_FILE, CERT_FILE, KEY_FILE = "ca.pem", "cert.pem", "key.pem"
+CLOCK_SKEW = datetime.timedelta(hours=1)  # certificates are valid from this long before they are issued (hosts' clocks differ)
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
@@ -60,6 +61,28 @@ class SecretsError(Exception):
 def cert_name(who: str, run: str) -> str:
     """The common name of ``who``'s certificate in run ``run``: ``learner-3@run-20250101-120000``."""
     return f"{who}@{run}"
+
+
+def clock_problem(folder: Path, now: datetime.datetime | None = None) -> str | None:
+    """Why the certificates in ``folder`` (a service's own) are not valid on this host's clock
+    (issued by a host whose clock runs more than CLOCK_SKEW ahead, or expired), in words; None
+    when they are, or cannot be read."""
+    now = now or datetime.datetime.now(datetime.timezone.utc)
+    for name in (CERT_FILE, CA_FILE):
+        try:
+            cert = x509.load_pem_x509_certificate((folder / name).read_bytes())
+        except (OSError, ValueError):
+            continue
+        start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
+        if now < start:
+            ahead = (start - now + CLOCK_SKEW).total_seconds() / 60
+            return (f"{folder / name} is valid only from {start:%Y-%m-%d %H:%M:%S} UTC, and this host's clock says "
+                    f"{now:%Y-%m-%d %H:%M:%S} UTC: the host that issued it runs about {ahead:.0f} min ahead of this one "
+                    f"(more than the {CLOCK_SKEW.total_seconds() / 60:.0f} min tolerated); set the hosts' clocks right (NTP)")
+        if now > end:
+            return (f"{folder / name} expired at {end:%Y-%m-%d %H:%M:%S} UTC (this host's clock says {now:%Y-%m-%d %H:%M:%S} "
+                    "UTC): make the run's credentials anew (swarmmap secrets), or set this host's clock right")
+    return None
 
 
 def own_folder(secrets: Path, who: str, run: str) -> Path:
@@ -138,7 +161,7 @@ class Authority:
                               key_encipherment=False, data_encipherment=False, key_agreement=False, encipher_only=False,
                               decipher_only=False)
         cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-                .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(minutes=5))
+                .serial_number(x509.random_serial_number()).not_valid_before(now - CLOCK_SKEW)
                 .not_valid_after(now + datetime.timedelta(days=days))
                 .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
                 .add_extension(usage, critical=True).sign(key, hashes.SHA256()))
@@ -167,7 +190,7 @@ class Authority:
         now = datetime.datetime.now(datetime.timezone.utc)
         builder = (x509.CertificateBuilder().subject_name(_name(cert_name(who, self.run))).issuer_name(self.cert.subject)
                    .public_key(public_key).serial_number(x509.random_serial_number())
-                   .not_valid_before(now - datetime.timedelta(minutes=5)).not_valid_after(now + datetime.timedelta(days=days))
+                   .not_valid_before(now - CLOCK_SKEW).not_valid_after(now + datetime.timedelta(days=days))
                    .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True))
         if server_names:
             builder = (builder.add_extension(x509.SubjectAlternativeName([_general_name(h) for h in server_names]), critical=False)

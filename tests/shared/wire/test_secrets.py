@@ -310,3 +310,20 @@ def test_missing_credentials_are_named(tmp_path):
         Bus.open(ZenohSettings(connect=["tcp/127.0.0.1:1"], secrets=tmp_path / "s"), Keys("swarmmap", "r"), "learner", 9)
     with pytest.raises(ConfigError, match="learner-0 has no credentials of run other"):  # credentials are bound to their run
         Bus.open(ZenohSettings(connect=["tcp/127.0.0.1:1"], secrets=tmp_path / "s"), Keys("swarmmap", "other"), "learner", 0)
+
+
+def test_credentials_tolerate_clocks_an_hour_apart_and_a_refusal_for_time_says_so(tmp_path):
+    """Certificates made on a host whose clock runs 10 min ahead are valid here; an hour and a
+    half ahead, or expired, and the refusal names the clock (not a host name)."""
+    import datetime
+
+    from swarmmap.shared.wire.secrets import clock_problem
+
+    folder = tmp_path / "s"
+    write_credentials(folder, "r1", identities(1), router_names([]))
+    own = own_folder(folder, "learner-0", "r1")
+    now = datetime.datetime.now(datetime.timezone.utc)
+    assert clock_problem(own, now - datetime.timedelta(minutes=10)) is None  # this host 10 min behind the issuer
+    behind = clock_problem(own, now - datetime.timedelta(minutes=90))
+    assert behind is not None and "runs about 90 min ahead" in behind and "clocks" in behind
+    assert "expired" in clock_problem(own, now + datetime.timedelta(days=31))
