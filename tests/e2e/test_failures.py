@@ -6,13 +6,15 @@ States; a killed launcher leaves no service behind."""
 from __future__ import annotations
 
 import json
+import os
 import random
 import signal
+import time
 
 import pytest
 
 from tests.conftest import wait_until
-from tests.harness import final_losses, kill_at_round, leftovers, service_pids, up
+from tests.harness import final_losses, kill_at_round, leftovers, reported_round, service_pids, up
 
 pytestmark = pytest.mark.e2e
 
@@ -84,3 +86,57 @@ def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishe
         assert abs(loss - clean[r]) <= 0.05 * clean[r], \
             f"robot {r}: {loss:.4f} against {clean[r]:.4f} clean (killed {robot} {after:.1f} s after round {at})"
     assert not leftovers(run_dir), "a service outlived the run"
+
+
+def final_points(run_dir) -> dict[str, int]:
+    """Each robot's training points, from its final Metrics row."""
+    import csv
+
+    with (run_dir / "metrics.csv").open() as f:
+        return {r["robot"]: int(r["n_points"]) for r in csv.DictReader(f) if r["final"] == "1"}
+
+
+@pytest.mark.faults
+def test_a_world_killed_mid_traversal_restarts_and_the_learners_take_each_scan_once(tmp_path):
+    """The world killed (SIGKILL) 3 s into a traversal driven in real time: up restarts it, it
+    drives from the start again, each learner drops the scans it had (counted in summary.json)
+    and trains on exactly the points of a clean run."""
+    args = [*SMOKE, "--rounds", "20", "--set", "world.time_scale=1"]
+    clean_dir, run_dir = tmp_path / "clean", tmp_path / "run"
+    assert up(clean_dir, *args).wait(600) == 0
+    proc = up(run_dir, *args)
+    try:
+        assert wait_until(lambda: "the robots drive" in recorder_log(run_dir), 180, 0.1)
+        time.sleep(3)
+        os.kill(service_pids(run_dir, "world")[0], signal.SIGKILL)
+        assert proc.wait(600) == 0, (tmp_path / "run.up.log").read_text()[-3000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and summary["services"]["world-0"]["restarts"] == 1
+    assert sum(v["repeated_samples"] for v in summary["learners"].values()) > 0
+    assert final_points(run_dir) == final_points(clean_dir)
+
+
+@pytest.mark.faults
+def test_an_observer_killed_mid_run_never_fails_the_run(tmp_path):
+    """The observer (optional) killed while the team trains: up says so and the run finishes ok."""
+    run_dir = tmp_path / "run"
+    proc = up(run_dir, "--preset", "smoke", "--robots", "3", "--observer", "--no-viewer", "--rounds", "150")
+    try:
+        assert wait_until(lambda: reported_round(run_dir, 0) >= 5 and service_pids(run_dir, "observer"), 300, 0.1)
+        os.kill(service_pids(run_dir, "observer")[0], signal.SIGKILL)
+        assert proc.wait(600) == 0, (tmp_path / "run.up.log").read_text()[-3000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert json.loads((run_dir / "summary.json").read_text())["ok"]
+    assert "the run goes on without it" in (tmp_path / "run.up.log").read_text()
+
+
+def recorder_log(run_dir) -> str:
+    try:
+        return (run_dir / "logs" / "recorder-0.log").read_text()
+    except OSError:
+        return ""
