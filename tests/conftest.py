@@ -164,3 +164,23 @@ def tmpfs(tmp_path):
     yield mount
     for point in reversed(mounted):
         subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+@pytest.fixture
+def memory_limit():
+    """``memory_limit(mib)``: this process may map at most ``mib`` MiB more than it has mapped now
+    (RLIMIT_AS) until the test ends: a reader that tries to take more fails with MemoryError
+    instead of taking the machine. Returns the limit in bytes."""
+    import resource
+
+    before = resource.getrlimit(resource.RLIMIT_AS)
+
+    def limit(mib: int) -> int:
+        with open("/proc/self/status") as f:
+            mapped = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+        cap = mapped + mib * (1 << 20)
+        resource.setrlimit(resource.RLIMIT_AS, (cap, before[1]))
+        return cap
+
+    yield limit
+    resource.setrlimit(resource.RLIMIT_AS, before)

@@ -365,22 +365,41 @@ def _parse_scalar(text: str) -> Any:
         return text
 
 
+MAX_CONFIG_BYTES = 1 << 20  # a config file, at most
+MAX_CONFIG_NODES = 100_000  # the values of a config file, aliases counted each time they are used
+
+
 def read_config_file(path: Path) -> dict[str, Any]:
-    """Read a YAML (or JSON) config file; refuse anything but a mapping."""
+    """Read a YAML (or JSON) config file; refuse anything but a mapping, a file over
+    MAX_CONFIG_BYTES, and one whose aliases make more than MAX_CONFIG_NODES values."""
     try:
+        if (size := Path(path).stat().st_size) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"config error:\n  --config: config file {path} is {size} bytes, over {MAX_CONFIG_BYTES}")
         doc = yaml.safe_load(Path(path).read_text())
     except FileNotFoundError:
         raise ConfigError(f"config error:\n  --config: config file {path} does not exist") from None
     except IsADirectoryError:
         raise ConfigError(f"config error:\n  --config: {path} is a folder; name its config.yaml") from None
-    except (OSError, yaml.YAMLError) as exc:
+    except (OSError, UnicodeDecodeError, RecursionError, yaml.YAMLError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"config error:\n  --config: config file {path} is not valid YAML: {first}") from None
+        raise ConfigError(f"config error:\n  --config: config file {path} is not valid YAML: {first[:200]}") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):
         raise ConfigError(f"config error:\n  --config: config file {path} must hold a mapping, got {type(doc).__name__}")
+    if not _within(doc, [MAX_CONFIG_NODES]):
+        raise ConfigError(f"config error:\n  --config: config file {path} holds more than {MAX_CONFIG_NODES} values "
+                          "(its aliases repeat themselves?)")
     return doc
+
+
+def _within(value: Any, budget: list[int], depth: int = 0) -> bool:
+    """Whether ``value`` (aliases counted each time) holds at most ``budget[0]`` values, 64 deep."""
+    budget[0] -= 1
+    if budget[0] < 0 or depth > 64:
+        return False
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    return all(_within(v, budget, depth + 1) for _, v in items)
 
 
 def env_names() -> dict[str, list[str]]:

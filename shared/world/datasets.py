@@ -32,6 +32,7 @@ import numpy as np
 
 from swarmmap.shared import plugins
 from swarmmap.shared.plugins import DatasetReader
+from swarmmap.shared.world.bagcheck import check_chunks
 
 if TYPE_CHECKING:
     pass
@@ -326,6 +327,11 @@ def bag_messages(path: Path, pose: str, topics: BagTopics) -> tuple[BagMessages,
         raise DatasetError(path, "reading ROS bags needs the rosbags package (pip install rosbags)") from None
     paths = [path.parent] if path.suffix == ".mcap" and (path.parent / "metadata.yaml").exists() else [path]
     got = BagMessages()
+    try:
+        for p in paths:
+            check_chunks(p)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"refused before it is read: {exc}") from None
     try:
         with AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             names = {c.topic: c.msgtype for c in reader.connections}

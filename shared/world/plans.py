@@ -16,6 +16,7 @@ naming the file.
 from __future__ import annotations
 
 import hashlib
+import io
 import logging
 import math
 import re
@@ -31,6 +32,7 @@ from swarmmap.shared.run.config import RunConfig, WorldSettings
 from swarmmap.shared.world.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, procedural
 
 MAX_IMAGE_PIXELS = 50_000_000
+MAX_IMAGE_BYTES = 256 << 20
 log = logging.getLogger(__name__)
 
 
@@ -88,17 +90,24 @@ def load_cubicasa_plan(path: Path) -> FloorPlan:
 
 def read_image(path: Path, what: str) -> tuple[np.ndarray, np.ndarray | None]:
     """An image's grey levels (uint8) and its alpha channel (None without one); a PlanError naming
-    the file when it is unreadable or larger than MAX_IMAGE_PIXELS, before its pixels are decoded."""
+    the file when it is unreadable, over MAX_IMAGE_BYTES, or larger than MAX_IMAGE_PIXELS, before
+    its pixels are decoded. The file is read into memory first: a chunk whose stated length is
+    wrong then reads what there is, and never makes PIL set aside the length it claims."""
     try:
-        with Image.open(path) as img:
+        size = path.stat().st_size
+        if size > MAX_IMAGE_BYTES:
+            raise PlanError(path, f"file of {size} bytes is larger than {MAX_IMAGE_BYTES} (the largest image read)")
+        with Image.open(io.BytesIO(path.read_bytes())) as img:
             if img.width * img.height > MAX_IMAGE_PIXELS:
                 raise PlanError(path, f"image of {img.width} x {img.height} pixels is larger than {MAX_IMAGE_PIXELS}")
             alpha = np.asarray(img.getchannel("A")) if "A" in img.getbands() else None
             return np.asarray(img.convert("L")), alpha
+    except PlanError:
+        raise
     except Image.DecompressionBombError as exc:  # PIL refuses to open it at all: twice its own pixel limit
         words = str(exc).split("(", 1)[-1].split(")", 1)[0]
         raise PlanError(path, f"image larger than {MAX_IMAGE_PIXELS} pixels ({words})") from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
         raise PlanError(path, f"not a readable {what}: {exc}") from None
 
 

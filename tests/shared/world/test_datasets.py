@@ -450,3 +450,59 @@ def _mapped_bytes() -> int:
 
     with open("/proc/self/statm") as f:
         return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def zstd_zeros(n: int) -> bytes:
+    """``n`` zero bytes as one zstd frame, compressed a MiB at a time (a 1 GiB one is about 33 KB)."""
+    from backports import zstd
+
+    c = zstd.ZstdCompressor()
+    return b"".join([*(c.compress(b"\0" * (1 << 20)) for _ in range(n >> 20)), c.flush()])
+
+
+def mcap_with_chunk(path: Path, stated: int, records: bytes, compression: str = "zstd") -> Path:
+    """A bare MCAP file: its magic, a header, one chunk of ``records`` stating ``stated`` bytes inflated, a footer."""
+    import struct
+
+    def record(op: int, content: bytes) -> bytes:
+        return bytes([op]) + struct.pack("<Q", len(content)) + content
+
+    def string(s: str) -> bytes:
+        return struct.pack("<I", len(s)) + s.encode()
+
+    chunk = struct.pack("<QQQI", 0, 1, stated, 0) + string(compression) + struct.pack("<Q", len(records)) + records
+    magic = b"\x89MCAP0\r\n"
+    path.write_bytes(magic + record(0x01, string("ros2") + string("x")) + record(0x06, chunk)
+                     + record(0x02, struct.pack("<QQI", 0, 0, 0)) + magic)
+    return path
+
+
+@pytest.mark.parametrize("stated", [1 << 30, 1 << 20])
+def test_an_mcap_chunk_that_inflates_to_a_gigabyte_is_refused_before_it_is_read(tmp_path, memory_limit, stated):
+    """A 33 KB MCAP whose zstd chunk inflates to 1 GiB, stating so or stating 1 MiB: refused by
+    name under a 512 MiB memory limit, without inflating more than the chunk's cap."""
+    bomb = mcap_with_chunk(tmp_path / "bomb.mcap", stated, zstd_zeros(1 << 30))
+    assert bomb.stat().st_size < 100_000
+    memory_limit(512)
+    with pytest.raises(DatasetError, match="refused before it is read: chunk 0 .*(states|inflates to more than)"):
+        read_log(bomb)
+
+
+def test_a_ros1_chunk_that_inflates_to_more_than_it_states_is_refused(tmp_path):
+    """A ROS 1 bag's bz2 chunk stating 1 MiB that inflates to 16 MiB is refused by name."""
+    import bz2
+    import struct
+
+    from swarmmap.shared.world.bagcheck import check_ros1
+
+    def field(name: str, value: bytes) -> bytes:
+        return struct.pack("<I", len(name) + 1 + len(value)) + name.encode() + b"=" + value
+
+    header = field("op", b"\x05") + field("compression", b"bz2") + field("size", struct.pack("<I", 1 << 20))
+    data = bz2.compress(b"\0" * (16 << 20))
+    bag = tmp_path / "bomb.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n" + struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data)
+    with pytest.raises(ValueError, match=r"chunk 0 at byte \d+ \(bz2\): it inflates to more than 1048576 bytes"):
+        check_ros1(bag)
+    with pytest.raises(DatasetError, match="refused before it is read"):
+        read_log(bag)
