@@ -21,7 +21,6 @@ from swarmmap.shared.wire.protocol import (
     RunDone,
     Samples,
     Scan,
-    State,
     Tensor,
     WorldMap,
 )
