@@ -5,10 +5,11 @@ round waits for (``active``): one whose liveliness token vanished (and did not c
 ``rejoin_wait`` seconds, the time a launcher needs to restart it), that stayed silent for
 ``silent_after`` seconds while this node waited on it (silent: no step forward, whatever it
 repeats; COMPLETE_WAIT times as long for the RoundComplete of a round whose State it sent), or
-that sent only States this node refuses for that long, is left out, and the round finishes with the neighbours the node has.
-It is taken back once it sends a State of the round at hand (at once) or of a later one (from
-the next round). Silence is counted while the node waits, not while it computes
-(:meth:`Membership.paused`).
+that sent only States this node refuses for that long, is left out, and the round finishes
+with the neighbours the node has. It is taken back once it sends a State of the round at hand
+(at once) or of a later one (from the next round), except the REFUSED_OUT_FOR_GOOD-th time it is
+left out for refused States: then for good (each return cost the team ``silent_after`` again).
+Silence is counted while the node waits, not while it computes (:meth:`Membership.paused`).
 
 A neighbour left out because it was gone or silent (its host lost, a link cut, a partition)
 learnt apart meanwhile, and so did this node: their parameters may then lie farther apart than
@@ -40,6 +41,7 @@ from swarmmap.services.learner.transport import Envelope, Transport
 log = logging.getLogger("learner")
 Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): theirs pulled within the screen's limit
 REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
+REFUSED_OUT_FOR_GOOD = 2  # left out this often for sending only refused States: left out for the rest of the run
 COMPLETE_WAIT = 2  # a neighbour whose State of the round is here has this many times silent_after for its RoundComplete
 RESEND_BACKOFF = 8  # a round's messages go again after resend_after seconds, then twice as long, up to 8 times it
 
@@ -114,6 +116,7 @@ class Membership:
         self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
         self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
         self.banned: set[int] = set()  # said two different things for one round: never heard again
+        self.refusals_out: dict[int, int] = {}  # per neighbour: how often it was left out for sending only refused States
         self.lost_since: dict[int, float] = {}
         self.alone_since: float | None = None
         self.reunion = Reunion(clip)
@@ -161,14 +164,16 @@ class Membership:
         late.late.pop(msg.sender, None)
         return True
 
-    def ban(self, j: int, why: str, rnd: int) -> None:
-        """``j`` is hostile (it said two different things for one round): left out for good."""
+    def ban(self, j: int, why: str, rnd: int, reason: str = "equivocation") -> None:
+        """``j`` is hostile (it said two different things for one round, or was left out again for
+        sending only refused States): left out for good."""
         if j in self.banned:
             return
         self.banned.add(j)
         self.active.discard(j)
         self.returning.discard(j)
-        self.stats.refused["equivocation"] += 1
+        self.refused_since.pop(j, None)
+        self.stats.refused[reason] += 1
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
 
@@ -239,7 +244,12 @@ class Membership:
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
                 self.reunion.away.add(j)
             elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
-                self.leave_out(j, f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s", rnd)
+                why = f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s"
+                self.refusals_out[j] = self.refusals_out.get(j, 0) + 1
+                if self.refusals_out[j] >= REFUSED_OUT_FOR_GOOD:
+                    self.ban(j, f"{why}, for the {self.refusals_out[j]}nd time", rnd, "refused")
+                else:
+                    self.leave_out(j, why, rnd)
             elif now - self.heard[j] > silent_after:
                 what = "sent no RoundComplete" if completing else "has been silent"
                 self.leave_out(j, f"{what} for {now - self.heard[j]:.0f} s", rnd)

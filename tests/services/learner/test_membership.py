@@ -1,0 +1,42 @@
+"""Who a round waits for: the rules of leaving a neighbour out and taking it back, alone."""
+
+from __future__ import annotations
+
+from swarmmap.services.learner.exchange import ExchangeRules, ExchangeStats
+from swarmmap.services.learner.membership import REFUSED_OUT_FOR_GOOD, Membership
+
+
+def test_a_neighbour_left_out_again_for_refused_states_stays_out(caplog):
+    """Left out for sending only refused States, a neighbour comes back with a State that
+    passes; left out for it REFUSED_OUT_FOR_GOOD times, it stays out (each return cost the team
+    silent_after of waiting)."""
+    stats = ExchangeStats()
+    m = Membership(0, {1, 2, 3}, ExchangeRules(silent_after=1.0), stats)
+    now = 0.0
+    for time_out in range(REFUSED_OUT_FOR_GOOD):
+        m.heard = dict.fromkeys(m.heard, now)
+        m.refused_since[1] = now
+        now += 1.5
+        m.check({1}, set(), rnd=time_out, now=now)  # (the round waits on 1 alone)
+        assert 1 not in m.active
+        m.came_back(1, time_out + 1, now_round=True)
+        assert (1 in m.active) == (time_out + 1 < REFUSED_OUT_FOR_GOOD)
+    assert 1 in m.banned and stats.refused["refused"] == 1 and {2, 3} <= m.active
+    assert "for the 2nd time; it is left out for the rest of the run" in caplog.text
+
+
+def test_silence_is_no_step_forward_and_a_round_complete_gets_longer():
+    """A neighbour not heard (no step forward) for silent_after is left out; once its State of
+    the round is here, only after COMPLETE_WAIT x silent_after without its RoundComplete."""
+    from swarmmap.services.learner.membership import COMPLETE_WAIT
+
+    m = Membership(0, {1, 2}, ExchangeRules(silent_after=1.0), ExchangeStats())
+    m.heard = {1: 0.0, 2: 0.0}
+    m.check({1, 2}, set(), rnd=0, now=1.5, completing=True)
+    assert m.active == {1, 2}
+    m.check({1, 2}, set(), rnd=0, now=COMPLETE_WAIT * 1.0 + 0.1, completing=True)
+    assert m.active == set()
+    m2 = Membership(0, {1}, ExchangeRules(silent_after=1.0), ExchangeStats())
+    m2.heard = {1: 0.0}
+    m2.check({1}, set(), rnd=0, now=1.5)
+    assert m2.active == set()
