@@ -118,7 +118,7 @@ class Algorithm1:
         self.updated = False
         self.round_started = time.monotonic()
         self.stats.rounds_done += 1
-        self.members.next_round(self.rnd)
+        self.members.next_round(self.rnd, lambda j: self.buf.held(j, self.rnd) is not None)
         self.round_state = self.state
         self.send_state()
         return True

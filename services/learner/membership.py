@@ -6,9 +6,10 @@ round waits for (``active``): one whose liveliness token vanished (and did not c
 ``silent_after`` seconds while this node waited on it (silent: no step forward, whatever it
 repeats; COMPLETE_WAIT times as long for the RoundComplete of a round whose State it sent), or
 that sent only States this node refuses for that long, is left out, and the round finishes
-with the neighbours the node has. It is taken back once it sends a State of the round at hand
-(at once) or of a later one (from the next round), except the REFUSED_OUT_FOR_GOOD-th time it is
-left out for refused States: then for good (each return cost the team ``silent_after`` again).
+with the neighbours the node has. It is taken back once its State of the round at hand is here
+(one of a later round alone brings it back at that round, not before), except the
+REFUSED_OUT_FOR_GOOD-th time it is left out for refused States: then for good (each return cost
+the team ``silent_after`` again).
 Silence is counted while the node waits, not while it computes (:meth:`Membership.paused`).
 
 A neighbour left out because it was gone or silent (its host lost, a link cut, a partition)
@@ -111,7 +112,7 @@ class Membership:
                  clip: Clip | None = None):
         self.node_id, self.neighbours, self.rules, self.stats = node_id, frozenset(neighbours), rules, stats
         self.active = set(neighbours)  # the neighbours this round waits for
-        self.returning: set[int] = set()  # left out, but sent a State of this round or a later one: back next round
+        self.returning: set[int] = set()  # left out, but sent a State of a later round: back once one of the round at hand is here
         now = time.monotonic()
         self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
         self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
@@ -198,6 +199,7 @@ class Membership:
         if j in self.banned:
             return
         if now_round:
+            self.returning.discard(j)
             self.active.add(j)
             self.reunion.back(j, rnd)
             self.stats.rejoined += 1
@@ -210,15 +212,19 @@ class Membership:
         round ``r`` or later (``newest``) for this node to jump there (:func:`corroborated`)."""
         return corroborated(newest, set(self.neighbours) - self.banned - self.lost_since.keys(), r)
 
-    def next_round(self, rnd: int) -> None:
-        """Round ``rnd`` begins: the neighbours returning are waited for again."""
-        if self.returning:
-            log.info("node %d: neighbour(s) %s back from round %d", self.node_id, sorted(self.returning), rnd)
-            self.active.update(self.returning)
-            for j in self.returning:
+    def next_round(self, rnd: int, holds: Callable[[int], bool] = lambda j: True) -> None:
+        """Round ``rnd`` begins: the neighbours returning whose State of it is here (``holds``) are
+        waited for again; the others once it comes (a State of a later round alone does not bring
+        a neighbour back: an honest one sends every round's, one that skips rounds would cost
+        each round ``silent_after`` of waiting)."""
+        back = {j for j in self.returning if holds(j)}
+        if back:
+            log.info("node %d: neighbour(s) %s back from round %d", self.node_id, sorted(back), rnd)
+            self.active.update(back)
+            for j in back:
                 self.reunion.back(j, rnd)
-            self.stats.rejoined += len(self.returning)
-            self.returning.clear()
+            self.stats.rejoined += len(back)
+            self.returning -= back
 
     def jumped(self, j: int, present: set[int], rnd: int) -> None:
         """The node caught up with neighbour ``j``'s round, where ``present`` sent their States
