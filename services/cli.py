@@ -273,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _runner(args.command)(cfg, stop)
     except ConfigError as exc:
+        if stop.is_set():  # stopped while it opened its session (the router stopped first): no config error
+            log.info("stopped before it was under way")
+            return 130
         print(exc.message, file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -84,7 +84,7 @@ def closing_block(run_dir: Path, max_robots: int = 16) -> str:
     summary = read_summary(run_dir) or {}
     learners = summary.get("learners") or {}
     finals = {int(r): v.get("final_val_bce") for r, v in learners.items() if v.get("final_val_bce") is not None}
-    outcome = "ok" if summary.get("ok") else "FAILED"
+    outcome = "ok" if summary.get("ok") else "INTERRUPTED" if summary.get("status") == 130 else "FAILED"
     wall = summary.get("wall_time_s")
     lines = ["", f"run {summary.get('run_id', run_dir.name)}: {outcome} ({summary.get('reason', 'no summary was written')})"
                  + (f" in {duration(wall)}" if wall else "")]
@@ -111,6 +111,8 @@ def next_commands(run_dir: Path, summary: dict) -> list[str]:
     """The commands to copy after a run: view, score, compare (or, after a failure, its logs)."""
     where = shlex.quote(str(run_dir))
     cmds = []
+    if summary.get("status") == 130:
+        cmds.append((f"swarmmap up --run-dir {where} --resume", "go on from the learners' last checkpoints"))
     if not summary.get("ok"):
         cmds.append((f"swarmmap logs {where}", "the services' logs (swarmmap logs RUN SERVICE prints one)"))
     if (run_dir / "recording.rrd").exists():

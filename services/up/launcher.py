@@ -521,7 +521,10 @@ class Launcher:
             summary = {"run_id": self.cfg.run_id, "preset": self.cfg.preset, "robots": self.cfg.robots,
                        "rounds": self.cfg.learner.rounds, "ok": False, "reason": "the recorder wrote no summary",
                        "started": time.time() - wall, "learners": {}}
-        if self.failure is not None and status != 0:  # why up ended the run, which the recorder could not know
+        if status == 130:  # stopped by its user: the recorder was stopped too, and says the run was cut short
+            summary.update(ok=False, reason=f"interrupted (Ctrl-C or SIGTERM) after {wall:.0f} s; resume it with "
+                                            f"swarmmap up --run-dir {self.run_dir} --resume")
+        elif self.failure is not None and status != 0:  # why up ended the run, which the recorder could not know
             summary.update(ok=False, reason=self.failure)
         learners = {c.ident: c for c in self.children if c.service == "learner"}
         for robot, entry in summary.get("learners", {}).items():

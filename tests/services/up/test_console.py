@@ -60,3 +60,15 @@ def test_a_bayesian_run_is_scored_by_its_own_std_maps(tmp_path):
     run_dir = recorded_run(tmp_path / "run", model="bnn")
     text = closing_block(run_dir)
     assert f"swarmmap experiment score {run_dir}  " in text and "--ensemble" not in text
+
+
+def test_an_interrupted_run_says_so_and_names_the_resume_command(tmp_path):
+    import json
+
+    run_dir = recorded_run(tmp_path / "run", ok=False)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    summary.update(status=130, reason="interrupted (Ctrl-C or SIGTERM) after 12 s")
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    text = closing_block(run_dir)
+    assert "INTERRUPTED (interrupted (Ctrl-C or SIGTERM) after 12 s)" in text and "FAILED" not in text
+    assert f"swarmmap up --run-dir {run_dir} --resume" in text
