@@ -7,7 +7,8 @@ each copy in the State: a Bayesian layer's means and rho apart, a tracker's or c
 - :class:`RoundScreen` judges a round's States together before the node update: a State one of
   whose blocks lies more than ``spread_factor`` times the round's honest spread from this node's
   (the median over the neighbours' States of the round, with at least :data:`MIN_NEIGHBOURS` of
-  them; with fewer, no State is an outlier of anything) is left out of the round and
+  them; with two, as on a ring, the nearer one's: one of the two may lie; with one, no State is
+  an outlier of anything) is left out of the round and
   counted as refused (``outlier``); a neighbour that sends only such States is left out as Algorithm
   1 leaves out any that sends only refused ones. A random direction at 0.45 of the norm, a layer's
   sign flipped, the vector scaled, a rho lowered by 2: each puts some block many times the honest
@@ -18,8 +19,9 @@ each copy in the State: a Bayesian layer's means and rho apart, a tracker's or c
   grow without bound, never cancelled by the other end of the link).
 
 With an honest majority among a node's neighbours (and at least MIN_NEIGHBOURS of them) a liar is
-an outlier; with fewer neighbours (a ring, or a team left with two) only the per-State checks
-(:mod:`~swarmmap.services.learner.screening`) apply. A spread remembered from earlier rounds would
+an outlier; with two (a ring), a liar is an outlier of its honest fellow's spread (an honest
+neighbour farther than ``spread_factor`` times the other is left out of that round only); with
+one, only the per-State checks (:mod:`~swarmmap.services.learner.screening`) apply. A spread remembered from earlier rounds would
 not do: the honest spread grows fastest in the first rounds (at round 0 the States are identical),
 so an old one refuses honest neighbours.
 """
@@ -69,15 +71,16 @@ class RoundScreen:
             return {}
         own = own[: self.n]
         dev = {j: self.deviations(own, v[: self.n]) for j, v in peers.items() if v.shape[0] >= self.n}
-        if len(dev) < MIN_NEIGHBOURS:
+        if len(dev) < 2:
             if not self.warned:
                 self.warned = True
-                log.info("too few neighbours' States (%d of %d needed) to judge a round's spread: only each State's "
-                         "own checks apply", len(dev), MIN_NEIGHBOURS)
+                log.info("one neighbour's State: no spread to judge it by; only each State's own checks apply")
             return {}
         scale = np.sqrt(np.bincount(self.ids, weights=own.astype(np.float64) ** 2, minlength=len(self.names)) / self.counts)
         floor = 1e-3 * scale + 1e-7  # identical States (round 0) have no spread: a floor, not zero
-        reference = np.maximum(np.median(np.stack(list(dev.values())), axis=0), floor)
+        devs = np.stack(list(dev.values()))
+        # Two neighbours (a ring): the nearer one's, since one may lie; more: their median.
+        reference = np.maximum(devs.min(axis=0) if len(dev) < MIN_NEIGHBOURS else np.median(devs, axis=0), floor)
         refused = {}
         for j, d in dev.items():
             ratio = d / (self.factor * reference)
