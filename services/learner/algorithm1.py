@@ -53,7 +53,15 @@ from swarmmap.services.learner.exchange import (
     StateCheck,
     refuse,
 )
-from swarmmap.services.learner.membership import RESEND_BACKOFF, REUNION_ROUNDS, LateStates, Membership, Replay, RoundBuffer
+from swarmmap.services.learner.membership import (
+    RESEND_BACKOFF,
+    REUNION_ROUNDS,
+    LateStates,
+    Membership,
+    Replay,
+    RoundBuffer,
+    round_states,
+)
 from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.transport import Envelope, Transport
 
@@ -98,7 +106,7 @@ class Algorithm1:
         if self.updated or not (ready or self.wait_over()):
             return False
         busy_since = time.monotonic()
-        used = self.members.round_states(self.screen, self.state, peers, self.late, self.rnd)
+        used = round_states(self.members, self.screen, self.state, peers, self.late, self.rnd)
         self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
         self.stats.update_s += self.members.paused(time.monotonic() - busy_since)
         self.updated = True

@@ -138,20 +138,6 @@ class Membership:
         refuse(self.stats, self.node_id, msg, why, "implausible")
         return False
 
-    def round_states(self, screen: RoundCheck | None, own: np.ndarray, peers: dict[int, np.ndarray], late: LateStates,
-                     rnd: int) -> dict[int, np.ndarray]:
-        """The States round ``rnd``'s update takes: the active neighbours' of the round, judged
-        together (``screen``: the outliers are refused for this round, counted; an honest node far
-        from the rest is refused only while it is), then, for the others, their late States
-        (poor links). Neighbours with neither are counted as missed."""
-        fresh = {j: self.reunion.clip(peers[j], own) if self.reunion(j, rnd) else peers[j] for j in self.active & peers.keys()}
-        refused = screen(own, fresh) if screen is not None and fresh else {}
-        for j, why in refused.items():
-            refuse(self.stats, self.node_id, Envelope("state", j, rnd), why, "outlier")
-        used = late.fill({j: v for j, v in fresh.items() if j not in refused}, self.active - refused.keys(), rnd)
-        self.stats.missed += len(self.active) - len(fresh.keys() | used.keys())
-        return used
-
     def equivocates(self, msg: Envelope, buf: RoundBuffer, late: LateStates, rnd: int) -> bool:
         """Whether ``msg`` (a plausible State of a round this node holds one of from the same
         sender) says something else, in an encoding that repeats itself exactly (float32, half
@@ -267,6 +253,22 @@ class Membership:
                                   f"(neighbour(s) {sorted(self.neighbours)} left or went silent)")
         else:
             self.alone_since = None
+
+
+def round_states(members: Membership, screen: RoundCheck | None, own: np.ndarray, peers: dict[int, np.ndarray],
+                 late: LateStates, rnd: int) -> dict[int, np.ndarray]:
+    """The States round ``rnd``'s update takes: ``members``' active neighbours' of the round, judged
+    together (``screen``: the outliers are refused for this round, counted; an honest node far
+    from the rest is refused only while it is), then, for the others, their late States
+    (poor links). Neighbours with neither are counted as missed."""
+    reunion = members.reunion
+    fresh = {j: reunion.clip(peers[j], own) if reunion(j, rnd) else peers[j] for j in members.active & peers.keys()}
+    refused = screen(own, fresh) if screen is not None and fresh else {}
+    for j, why in refused.items():
+        refuse(members.stats, members.node_id, Envelope("state", j, rnd), why, "outlier")
+    used = late.fill({j: v for j, v in fresh.items() if j not in refused}, members.active - refused.keys(), rnd)
+    members.stats.missed += len(members.active) - len(fresh.keys() | used.keys())
+    return used
 
 
 def corroborated(newest: dict[int, int], trusted: set[int], r: int) -> bool:

@@ -137,9 +137,7 @@ class RobotLearner:
             compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank,
                                     list(inputs.layout.matrices))
             transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
-            transport = hostile(cfg, self.robot, transport, inputs.layout)
-            if isinstance(transport, HostileTransport) and transport.liar.plugin.sends == "metrics":
-                flood_metrics(self.metrics_pub.put, cfg.run_id, self.robot)
+            transport = hostile(cfg, self.robot, transport, inputs.layout, self.metrics_pub.put)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
             public = partial(public_state, self.codec)  # (the consensus terms use what the neighbours hold)
         self.node = make_node(s.algorithm, inputs, RuleChoice.of(s, self.graph, self.robot, public))
@@ -195,8 +193,8 @@ class RobotLearner:
                        consensus_error=consensus_error(params_of(theta), {j: params_of(p) for j, p in peers.items()}),
                        bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
                        compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
-                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]),
-                       repeated_samples=self.collector.repeated, final=final)
+                       n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final,
+                       repeated_samples=self.collector.repeated)
 
     def publish(self, msg: Metrics, theta: np.ndarray) -> Metrics:
         """Publish ``msg`` (and, in process, the State it was taken of, for the observer)."""
@@ -297,11 +295,16 @@ def state_links(learner: RobotLearner, link: Link, compressor: Compressor, cover
                       position=(lambda: learner.collector.position) if dynamic else None, coverage=coverage)
 
 
-def hostile(cfg: RunConfig, robot: int, transport: Transport, layout: StateLayout) -> Transport:
-    """``transport``, or, for a robot of ``faults.attackers``, one that lies to its neighbours (tests, bench/)."""
+def hostile(cfg: RunConfig, robot: int, transport: Transport, layout: StateLayout,
+            publish_metrics: Callable[[Metrics], object]) -> Transport:
+    """``transport``, or, for a robot of ``faults.attackers``, one that lies to its neighbours (tests,
+    bench/); a metrics-flood attacker floods ``publish_metrics`` too."""
     if robot not in cfg.faults.attackers or cfg.faults.attack == "none":
         return transport
-    return HostileTransport(transport, robot, cfg.faults.attack, layout, cfg.faults.seed)
+    liar = HostileTransport(transport, robot, cfg.faults.attack, layout, cfg.faults.seed)
+    if liar.liar.plugin.sends == "metrics":
+        flood_metrics(publish_metrics, cfg.run_id, robot)
+    return liar
 
 
 def compute_slots(cfg: RunConfig, robot: int) -> AbstractContextManager:
