@@ -441,7 +441,9 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
 def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
     """Log how the run ended (the verdict, the team's last progress line, the closing line) and
     write ``summary.json``."""
-    (log.info if doc["ok"] else log.error)("run %s: %s", "succeeded" if doc["ok"] else "FAILED", doc["reason"])
+    stopped = doc["reason"].startswith("interrupted")
+    (log.info if doc["ok"] else log.warning if stopped else log.error)(
+        "run %s: %s", "succeeded" if doc["ok"] else "stopped" if stopped else "FAILED", doc["reason"])
     if phases.team.started:
         log.info("%s", phases.team.line())
     log.info("%s", closing_line(doc))
@@ -609,7 +611,7 @@ def end_run(cfg: RunConfig, rec: Recorder, bus: Bus, done, outcome: tuple[bool, 
     (bounded by ``recorder.linger_s``), draw the overview; whether the run succeeded."""
     interrupted = outcome is None
     if interrupted:
-        outcome = False, f"the recorder was stopped before the run was over (finished: {sorted(rec.tracker.finished)})"
+        outcome = False, f"interrupted: the recorder was stopped before the run was over (finished: {sorted(rec.tracker.finished)})"
     ok, reason = outcome
     msg = RunDone(run=cfg.run_id, sender=0, ok=ok, reason=reason, finished=sorted(rec.tracker.finished))
     write_summary(cfg.run_dir, rec.summary(ok, reason), rec.phases)  # a disk that cannot take it is logged

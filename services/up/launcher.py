@@ -183,6 +183,10 @@ class Child:
 
 
 
+class Interrupted(Exception):
+    """Ctrl-C (or SIGTERM) while ``up`` waited for the services to start."""
+
+
 def optional(child: Child) -> bool:
     """Whether the run goes on when ``child`` exits (the observer)."""
     k = kinds().get(child.service)
@@ -319,6 +323,7 @@ class Launcher:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{service} {sorted(missing)} not alive after {self.cfg.up.start_timeout_s:.0f} s")
             self.stop.wait(0.1)
+        raise Interrupted
 
     def grace(self, child: Child) -> float:
         """How long ``child`` gets to finish once the run is over: the observer maps the final
@@ -384,6 +389,9 @@ class Launcher:
                 status = self.watch(recorder)
                 if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves
                     self.let_leave(lambda: {f"{service}-{ident}" for service, ident in bus.alive()})  # (run/done)
+        except Interrupted:
+            log.info("interrupted while the services started; stopping every service")
+            status = 130
         except RuntimeError as exc:
             log.error("%s", exc)
             status = 1

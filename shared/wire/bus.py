@@ -412,7 +412,7 @@ class Bus:
         once more, on a link it already fills)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
-            for reply in self.session.get(key, timeout=max(0.5, deadline - time.monotonic())):
+            for reply in self._replies(key, max(0.5, deadline - time.monotonic()), stop):
                 if reply.ok is None:
                     continue
                 payload = reply.ok.payload.to_bytes()
@@ -423,6 +423,22 @@ class Bus:
                     self.refuse(key, err)
             time.sleep(retry_every) if stop is None else stop.wait(retry_every)
         return None
+
+    def _replies(self, key: str, timeout: float, stop: threading.Event | None):
+        """The replies to a query on ``key`` as they come, until every one came, ``timeout``
+        passed, or ``stop`` was set (a service stopped while it waits for a reply stops at once)."""
+        replies = self.session.get(key, timeout=timeout)
+        while True:
+            try:
+                reply = replies.try_recv()
+            except zenoh.ZError:  # closed: every reply came, or the query timed out
+                return
+            if reply is not None:
+                yield reply
+            elif stop is not None and stop.is_set():
+                return
+            else:
+                time.sleep(0.02)
 
     def world(self, timeout: float, stop: threading.Event | None = None) -> WorldMap | None:
         """The world's map (:meth:`query`); None, logged unless ``stop`` is set, when no reply comes
