@@ -145,7 +145,8 @@ def add_tool_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--tail", type=int, default=0, metavar="N", help="only the last N lines of each log (0: all)")
     elif name == "compare":
         p.add_argument("runs", nargs="+", metavar="RUN_DIR[=LABEL]", help="run directories, each optionally with its label")
-        p.add_argument("--out", type=Path, default=Path("compare.png"), help="the PNG to write [default: compare.png]")
+        p.add_argument("--out", type=Path, default=None, help="the PNG to write, never over a file [default: "
+                                                               "compare.png in the first run, -2, -3... beside one there]")
         p.add_argument("--target", type=float, default=None, help="draw this val_bce as a line and say when each run reached it")
     elif name == "services":
         p.add_argument("--slurm", action="store_true", help="one line per kind the SLURM job starts beside its routers: "

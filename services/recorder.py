@@ -385,7 +385,7 @@ def save_ground_truth(run_dir: Path, world: WorldMap) -> None:
     dataset, which has no ground truth, ``reference``: the log-odds grid's probabilities, whose
     trinary map is the grid)."""
     grid = world.grid.numpy()
-    save_png(run_dir / "groundtruth.png", np.where(grid == 2, 0.5, grid.astype(float)))  # unknown (ROS maps): grey
+    save_png(run_dir / "groundtruth.png", np.where(grid == 2, 0.5, grid.astype(float)), world.resolution)  # unknown: grey
     buf = io.BytesIO()
     extra = {"reference": world.reference.numpy()} if world.reference is not None else {}
     np.savez_compressed(buf, grid=world.grid.numpy(), resolution=world.resolution, origin=np.asarray(world.origin),

@@ -3,7 +3,7 @@
     swarmmap runs [FOLDER]                     # every run in FOLDER (default ./runs) at a glance
     swarmmap logs RUN_DIR                      # the run's service logs, with sizes
     swarmmap logs RUN_DIR learner-1 --tail 50  # one service's log (learner: every learner's)
-    swarmmap compare RUN_A RUN_B=label --out ab.png [--target 0.102]
+    swarmmap compare RUN_A RUN_B=label [--out ab.png] [--target 0.102]  # default: RUN_A/compare.png
 
 They need no config and no network: what a run leaves is enough, also of a run that failed.
 """
@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 from swarmmap.shared.run.config import did_you_mean
-from swarmmap.shared.run.rundir import TeamCurve, is_run_dir, local_time, run_info, team_curve
+from swarmmap.shared.run.rundir import TeamCurve, is_run_dir, local_time, run_info, run_words, team_curve, unused_path
 
 
 class ToolError(Exception):
@@ -37,9 +37,10 @@ def list_runs(args: argparse.Namespace) -> int:
     if not infos:
         print(f"no runs in {args.folder} (a run directory holds config.yaml; swarmmap up --run-dir makes one)")
         return 0
-    header = ("run", "status", "robots", "rounds", "final val_bce", "started")
+    header = ("run", "status", "robots", "rounds", "final val_bce", "started", "what")
     rows = [(i.path.name, i.status, str(i.robots or "?"), str(i.rounds or "?"),
-             "n/a" if i.final_mean_val_bce is None else f"{i.final_mean_val_bce:.4f}", local_time(i.started)) for i in infos]
+             "n/a" if i.final_mean_val_bce is None else f"{i.final_mean_val_bce:.4f}", local_time(i.started), run_words(i.path))
+            for i in infos]
     widths = [max(len(r[k]) for r in [header, *rows]) for k in range(len(header))]
     for row in [header, *rows]:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
@@ -127,7 +128,7 @@ def compare(args: argparse.Namespace) -> int:
             raise ToolError(f"swarmmap compare: {exc}") from None
         if not curve.rounds:
             raise ToolError(f"swarmmap compare: {run_dir}: no round that every learner reported")
-        curves.append((label or run_dir.name, curve))
+        curves.append((label or f"{run_dir.name} ({run_words(run_dir)})", curve))
     for label, c in curves:
         when = ""
         if args.target is not None:
@@ -135,6 +136,9 @@ def compare(args: argparse.Namespace) -> int:
             when = (f"reached {args.target} at round {hit[0]}, {hit[1]:.0f} s; " if hit else f"never reached {args.target}; ")
         print(f"{label}: {when}final mean val_bce {c.mean[-1]:.4f} at round {c.rounds[-1]}, {c.seconds[-1]:.0f} s "
               f"(start-up and traversal {c.startup_s:.0f} s)", flush=True)
-    plot_curves(curves, args.out, args.target)
-    print(f"curves: {args.out}")
+    out = args.out or unused_path(Path(args.runs[0].partition("=")[0]) / "compare.png")
+    if out.exists():
+        raise ToolError(f"swarmmap compare: {out} exists; name another --out (nothing is overwritten)")
+    plot_curves(curves, out, args.target)
+    print(f"curves: {out}")
     return 0

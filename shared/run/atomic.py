@@ -34,14 +34,38 @@ def atomic_write_text(path: Path | str, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def save_png(path: Path | str, occupancy: np.ndarray) -> None:
+def save_png(path: Path | str, occupancy: np.ndarray, resolution: float | None = None) -> None:
     """Write an occupancy-probability grid (H, W) in [0, 1], row 0 = south, as an 8-bit PNG:
-    dark = occupied, white = free, north up."""
+    dark = occupied, white = free, north up; with its ``resolution`` (m a cell), a scale bar."""
     import io
 
     from PIL import Image
 
-    img = (255 * (1 - np.clip(occupancy, 0, 1)))[::-1].round().astype(np.uint8)
+    img = Image.fromarray((255 * (1 - np.clip(occupancy, 0, 1)))[::-1].round().astype(np.uint8))
+    if resolution is not None:
+        scale_bar(img, resolution)
     buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="PNG")
+    img.save(buf, format="PNG")
     atomic_write_bytes(path, buf.getvalue())
+
+
+BAR_METRES = (0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
+
+
+def scale_bar(img, resolution: float) -> None:
+    """Draw a scale bar into a map image (PIL, one pixel a cell of ``resolution`` m) in its
+    lower-left corner: the longest round length of at most a quarter of its width, with its length
+    written over it, on a white box so that it reads on any map."""
+    from PIL import ImageDraw
+
+    metres = max((m for m in BAR_METRES if m / resolution <= img.width / 4), default=None)
+    if metres is None or img.height < 24:
+        return
+    n = int(round(metres / resolution))
+    words = f"{metres:g} m"
+    draw = ImageDraw.Draw(img)
+    black, white = (0, 0, 0) if img.mode == "RGB" else 0, (255, 255, 255) if img.mode == "RGB" else 255
+    x0, y1 = 4, img.height - 4
+    draw.rectangle([x0 - 2, y1 - 20, x0 + max(n, 6 * len(words)) + 2, y1 + 2], fill=white)
+    draw.rectangle([x0, y1 - 3, x0 + n, y1], fill=black)
+    draw.text((x0, y1 - 17), words, fill=black)

@@ -60,6 +60,8 @@ class RunConfig(Section):
     robots: int = Field(3, ge=1, le=64, description="number of robots (and lidar streamers and learners)")
     seed: int = Field(0, ge=0, description="seed of the floor plan, paths, sampling and model initialisation")
     run_dir: Path | None = Field(None, description="directory for the run's outputs (config, metrics, models, maps)")
+    label: str = Field("", max_length=80, description="a few words that tell this run apart (swarmmap runs, compare's "
+                                                      "legends, overview.png's title); changes nothing it computes")
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="log verbosity")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     router: RouterSettings = Field(default_factory=RouterSettings)

@@ -26,7 +26,7 @@ CHECKPOINT_FORMAT = 3
 # Fields that do not change what a run computes, by section ("" is the top level).
 NOT_COUNTED: dict[str, tuple[str, ...]] = {
     # names and places (a preset is only the fields it sets, which count one by one), verbosity
-    "": ("preset", "run_id", "key_prefix", "run_dir", "log_level"),
+    "": ("preset", "run_id", "key_prefix", "run_dir", "label", "log_level"),
     # how sessions find each other, authenticate and how long a stuck link is borne
     "zenoh": ("mode", "connect", "listen", "multicast_scouting", "config_file", "secrets", "connect_timeout_s", "insecure",
               "signer", "keep_ca", "stuck_s", "shared_memory"),

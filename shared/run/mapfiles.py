@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from swarmmap.shared.run.atomic import atomic_write_bytes, save_png
+from swarmmap.shared.run.atomic import atomic_write_bytes, save_png, scale_bar
 from swarmmap.shared.run.overview import STD_CMAP, colorize
 
 # map_server's standard thresholds and the pixels map_saver writes in trinary mode.
@@ -75,15 +75,16 @@ def save_learned_map(folder: Path, name: str, maps: dict[str, np.ndarray], std_m
     np.savez_compressed(buf, **maps)
     written = [folder / f"{name}.npz", folder / f"{name}-mean.png", folder / f"{name}.yaml", folder / f"{name}.pgm"]
     atomic_write_bytes(written[0], buf.getvalue())
-    save_png(written[1], maps["mean"])
+    save_png(written[1], maps["mean"], res)
     save_ros_map(written[2], occupancy_pixels(maps["mean"]), res, origin,
                   f"swarmmap learned map {name}: mean occupancy, occupied above {OCCUPIED_THRESH}, free below "
                   f"{FREE_THRESH}, unknown in between")
     if "std" in maps:
         from PIL import Image
 
-        img = io.BytesIO()
-        Image.fromarray(colorize(maps["std"], STD_CMAP, std_max)).save(img, format="PNG")
+        img, picture = io.BytesIO(), Image.fromarray(colorize(maps["std"], STD_CMAP, std_max))
+        scale_bar(picture, res)
+        picture.save(img, format="PNG")
         written += [folder / f"{name}-std.png", folder / f"{name}-std.yaml", folder / f"{name}-std.pgm"]
         atomic_write_bytes(written[-3], img.getvalue())
         save_ros_map(written[-2], std_pixels(maps["std"], std_max), res, origin,

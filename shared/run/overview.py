@@ -105,7 +105,7 @@ def error_map(maps: dict[str, np.ndarray], truth: np.ndarray, known: np.ndarray)
 
 def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, std_max: float = 0.25,
                     notes: dict[int, str] | None = None, hits: dict[int, np.ndarray] | None = None,
-                    truth: str = "ground truth") -> None:
+                    truth: str = "ground truth", title: str = "") -> None:
     """One row per robot (ground truth with its ``hits``, mean, std where there is one, error),
     axes in metres, a colour bar per scale; written to ``path`` as a PNG, atomically. ``truth``
     names what ``grid`` is (a run on a dataset: the log-odds grid, a reference)."""
@@ -127,6 +127,8 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
                                  left=left / width, right=1 - 0.3 / width, bottom=bottom / height, top=1 - 0.5 / height,
                                  wspace=gap_x / panel, hspace=gap_y / panel_h)
     axes = np.array([[fig.add_subplot(grid_spec[r, c]) for c in range(len(kinds))] for r in range(len(robots))])
+    if title:
+        fig.suptitle(title, y=1 - 0.12 / height, fontsize=10)
     images: dict[str, object] = {}
     for row, robot in zip(axes, robots):
         images |= overview_row(row, kinds, grid, maps[robot], std_max, (hits or {}).get(robot), robot, truth)
@@ -202,5 +204,8 @@ def write_overview(run_dir: Path, std_max: float = 0.25, notes: dict[int, str] |
     path = run_dir / "overview.png"
     with np.load(run_dir / "groundtruth.npz") as gt:
         truth = "log-odds grid (reference)" if "reference" in gt.files else "ground truth"
-    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots}, truth)
+    from swarmmap.shared.run.rundir import config_doc, run_words
+
+    title = f"run {config_doc(run_dir).get('run_id', run_dir.name)}: {run_words(run_dir)}"
+    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots}, truth, title)
     return path

@@ -150,6 +150,25 @@ def config_doc(run_dir: Path) -> dict:
     return doc if isinstance(doc, dict) else {}
 
 
+def run_words(run_dir: Path) -> str:
+    """What tells a run apart, from its config.yaml: its label, preset, model, plan or dataset and
+    robots ("first try, smoke, fourier, procedural 2x2, 3 robots"); "" when unreadable."""
+    doc = config_doc(run_dir)
+    if not doc:
+        return ""
+    world, learner = doc.get("world") or {}, doc.get("learner") or {}
+    if world.get("dataset"):
+        names = [Path(str(p)).name for p in world["dataset"]] if isinstance(world["dataset"], list) else [str(world["dataset"])]
+        plan = f"dataset {', '.join(names[:2])}{' ...' if len(names) > 2 else ''}"
+    elif world.get("floorplan") not in (None, "procedural"):
+        plan = f"plan {Path(str(world['floorplan'])).name}"
+    else:
+        plan = f"procedural {world.get('rooms_x', '?')}x{world.get('rooms_y', '?')}"
+    words = [doc.get("label") or "", doc.get("preset") or "", str(learner.get("model") or ""), plan,
+             f"{doc.get('robots', '?')} robots"]
+    return ", ".join(w for w in words if w)
+
+
 def config_numbers(run_dir: Path) -> tuple[int | None, int | None]:
     """(robots, rounds) from a run's config.yaml."""
     doc = config_doc(run_dir)

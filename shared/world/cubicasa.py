@@ -19,7 +19,7 @@ from xml.parsers import expat
 
 import numpy as np
 
-from swarmmap.shared.world.floorplan import PlanError
+from swarmmap.shared.world.floorplan import PlanError, missing
 
 MAX_BYTES = 50 * 1024 * 1024
 MAX_DEPTH = 256  # CubiCasa nests ~15 deep; the limit keeps hostile nesting from blowing the recursion
@@ -48,7 +48,7 @@ def load_cubicasa(path: str | Path, scale_m_per_unit: float = 0.01) -> CubiCasaP
     p = Path(path)
     try:
         if not p.exists():
-            raise PlanError(str(p), "file does not exist")
+            raise PlanError(str(p), missing(p))
         size = p.stat().st_size
         if size > MAX_BYTES:
             raise PlanError(str(p), f"file is {size} bytes, over the {MAX_BYTES >> 20} MB limit")

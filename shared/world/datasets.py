@@ -33,6 +33,7 @@ import numpy as np
 from swarmmap.shared import plugins
 from swarmmap.shared.plugins import DatasetReader
 from swarmmap.shared.world.bagcheck import check_chunks
+from swarmmap.shared.world.floorplan import missing
 
 if TYPE_CHECKING:
     pass
@@ -475,7 +476,7 @@ def read_log(path: str | Path, pose: str = "auto", topics: BagTopics | None = No
     apart by its name; or a format a plug-in reads)."""
     p = Path(path)
     if not p.exists():
-        raise DatasetError(p, "no such file or folder")
+        raise DatasetError(p, missing(p, "no such file or folder:"))
     name, reader = reader_for(p)
     got = reader.read(p, pose, topics)
     if not isinstance(got, LaserLog):

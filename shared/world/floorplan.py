@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,6 +23,19 @@ from shapely.ops import unary_union
 
 if TYPE_CHECKING:
     import trimesh
+
+
+def missing(path: object, what: str = "file") -> str:
+    """A missing file's problem in words (``what`` ending in ":" is said as it is); one under a
+    ``data`` folder in a folder named ``shared`` is the sample data kept beside the repository,
+    and the words say where it comes from."""
+    parts = Path(str(path)).parts
+    sample = any(a == "shared" and b == "data" for a, b in zip(parts, parts[1:]))
+    words = what[:-1] if what.endswith(":") else f"{what} does not exist"
+    if sample:
+        words += (" (sample data, kept beside the repository and never in it: the README's 'Sample data' says where "
+                  "each comes from and where to put it)")
+    return words
 
 
 class PlanError(ValueError):

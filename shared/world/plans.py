@@ -29,7 +29,7 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from swarmmap.shared.run.config import RunConfig, WorldSettings
-from swarmmap.shared.world.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, procedural
+from swarmmap.shared.world.floorplan import FloorPlan, OccupancyGrid, PlanError, close_doors, missing, procedural
 
 MAX_IMAGE_PIXELS = 50_000_000
 MAX_IMAGE_BYTES = 256 << 20
@@ -55,7 +55,7 @@ def load_floorplan(spec: str, settings: WorldSettings, seed: int) -> FloorPlan:
     else:
         path = Path(spec)
         if not path.is_file():
-            raise PlanError(spec, "file does not exist" if not path.exists() else "not a regular file")
+            raise PlanError(spec, missing(path) if not path.exists() else "not a regular file")
         suffix = path.suffix.lower()
         if suffix == ".svg":
             plan = load_cubicasa_plan(path)
@@ -240,7 +240,7 @@ def load_waypoints(folder: Path, plan: FloorPlan) -> list[np.ndarray]:
     from swarmmap.shared.world.paths import check_paths, interpolate_dinno
 
     if not folder.is_dir():
-        raise PlanError(folder, "waypoint folder does not exist" if not folder.exists() else "not a folder")
+        raise PlanError(folder, missing(folder, "waypoint folder") if not folder.exists() else "not a folder")
     files = sorted(folder.glob("*.npy"), key=lambda f: (int(m.group()) if (m := re.search(r"\d+", f.stem)) else 1 << 30, f.name))
     if not files:
         raise PlanError(folder, "no .npy waypoint files in the folder")

@@ -20,10 +20,11 @@ def test_runs_lists_every_run_with_its_status_robots_rounds_and_final_loss(tmp_p
     (tmp_path / "runs" / "not-a-run").mkdir()
     assert list_runs(argparse.Namespace(folder=tmp_path / "runs")) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split() == ["run", "status", "robots", "rounds", "final", "val_bce", "started"]
+    assert lines[0].split() == ["run", "status", "robots", "rounds", "final", "val_bce", "started", "what"]
     rows = {line.split()[0]: line.split() for line in lines[1:]}
     assert sorted(rows) == ["bad", "good"]
     assert rows["good"][1:5] == ["ok", "2", "60", "0.1500"] and rows["bad"][1:5] == ["failed", "3", "40", "0.4000"]
+    assert all(line.endswith("smoke, fourier, procedural 2x2, 2 robots") for line in lines[1:] if "good" in line)
     with pytest.raises(ToolError, match="does not exist"):
         list_runs(argparse.Namespace(folder=tmp_path / "elsewhere"))
 
@@ -49,10 +50,15 @@ def test_compare_prints_each_runs_result_and_plots_both_curves(tmp_path, capsys)
     out = tmp_path / "fig" / "ab.png"
     assert compare(argparse.Namespace(runs=[str(a), f"{b}=slow"], out=out, target=0.2)) == 0
     text = capsys.readouterr().out
-    assert "a: reached 0.2 at round 60, 42 s; final mean val_bce 0.1500 at round 60" in text
+    assert "a (smoke, fourier, procedural 2x2, 2 robots): reached 0.2 at round 60, 42 s; final mean val_bce 0.1500" in text
     assert "slow: never reached 0.2; final mean val_bce 0.3000" in text
     with Image.open(out) as img:
         assert img.size[0] > 2 * img.size[1] * 0.9  # two panels side by side
+    with pytest.raises(ToolError, match="exists; name another --out"):
+        compare(argparse.Namespace(runs=[str(a), str(b)], out=out, target=None))
+    for name in ("compare.png", "compare-2.png"):  # by default into the first run, never over a file
+        assert compare(argparse.Namespace(runs=[str(a), str(b)], out=None, target=None)) == 0
+        assert (a / name).exists() and f"curves: {a / name}" in capsys.readouterr().out
     with pytest.raises(ToolError, match="not a run directory"):
         compare(argparse.Namespace(runs=[str(tmp_path / "nope")], out=out, target=None))
 

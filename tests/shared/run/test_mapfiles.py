@@ -101,3 +101,18 @@ def test_free_space_on_a_maps_edge_is_unknown_so_the_world_stays_closed(tmp_path
     grid = load_floorplan(str(tmp_path / "edge.yaml"), WorldSettings(), 0).raster
     assert grid.unknown[:, 0].all() and (grid.grid[:, 0] > 0).all(), "the edge is solid and no ground truth"
     assert (grid.grid[:, 1] == 0).any(), "free cells inside the edge stay free"
+
+
+def test_map_pngs_carry_a_scale_bar_of_a_round_length(tmp_path):
+    """A learned map's PNGs (0.05 m cells, 181 wide) show a 2 m bar (40 px) in the lower-left corner."""
+    from PIL import Image
+
+    from swarmmap.shared.run.mapfiles import save_learned_map
+
+    maps = {"mean": np.full((191, 181), 0.5, np.float32), "std": np.full((191, 181), 0.1, np.float32),
+            "resolution": np.float32(0.05), "origin": np.zeros(2, np.float32)}
+    save_learned_map(tmp_path, "robot-0", maps, 0.25)
+    for name in ("robot-0-mean.png", "robot-0-std.png"):
+        px = np.asarray(Image.open(tmp_path / name).convert("L"))
+        bar = px[-7:-4, 4:45]
+        assert (bar == 0).all() and (px[-7:-4, 45:47] == 255).all(), name  # 40 px of black, then the white box

@@ -155,3 +155,13 @@ def test_truncated_or_foreign_waypoint_files_are_named(tmp_path, box_png):
     (folder / "1.npy").write_text("hello")
     with pytest.raises(PlanError, match="1.npy: not a readable .npy"):
         load_floorplan(str(box_png), WorldSettings(waypoints=str(folder)), 0)
+
+
+def test_a_missing_sample_file_says_where_the_sample_data_comes_from(tmp_path):
+    """A plan or log under ``shared/data`` that is not there: the refusal points at the README's Sample data."""
+    from swarmmap.shared.world.datasets import DatasetError, read_log
+
+    with pytest.raises(PlanError, match="sample data, kept beside the repository.*README's 'Sample data'"):
+        load_floorplan(str(tmp_path / "shared" / "data" / "cubicasa5k" / "353" / "model.svg"), WorldSettings(), 0)
+    with pytest.raises(DatasetError, match="no such file or folder \\(sample data"):
+        read_log(tmp_path / "shared" / "data" / "carmen" / "intel-corrected.log.gz")
