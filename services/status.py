@@ -23,7 +23,7 @@ import zenoh
 from swarmmap.shared.run.config import ConfigError, RunConfig
 from swarmmap.shared.run.flags import config_from_args
 from swarmmap.shared.run.progress import TeamProgress, eta_words
-from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, read_summary, summary_outcome
+from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, read_summary, run_words, summary_outcome
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import decode
 from swarmmap.shared.wire.protocol import Keys, Metrics
@@ -104,7 +104,9 @@ def learner_rows(snap: Snapshot, run_dir: Path | None) -> dict[int, tuple[int, f
 def live_report(cfg: RunConfig, snap: Snapshot, window: float, run_dir: Path | None) -> str:
     """The status table of a live run: every service listed (the count is of what is listed),
     then each learner's round and val_bce."""
-    lines = [f"run {cfg.run_id}: running; {len(snap.alive)} service(s) alive (message rates over {window:.1f} s)"]
+    what = run_words(run_dir) if run_dir is not None else ""
+    lines = [f"run {cfg.run_id}{f' ({what})' if what else ''}: running; {len(snap.alive)} service(s) alive (message rates "
+             f"over {window:.1f} s)"]
     for service, ident in snap.alive:
         rates = ", ".join(f"{topic} {n / window:.1f} msg/s {b / window / 1024:.1f} KiB/s"
                           for topic, (n, b) in sorted(snap.counts.get((service, ident), {}).items()))
@@ -129,8 +131,9 @@ def finished_report(run_dir: Path, summary: dict) -> str:
     """A finished run, from its summary: how and when it ended, and each learner's final val_bce."""
     ended = summary.get("finished") or (run_dir / "summary.json").stat().st_mtime
     status = summary_outcome(summary)
-    lines = [f"run {summary.get('run_id', run_dir.name)}: not running; finished {status} at {local_time(ended)} "
-             f"({summary.get('reason', '')})"]
+    what = run_words(run_dir)
+    lines = [f"run {summary.get('run_id', run_dir.name)}{f' ({what})' if what else ''}: not running; finished {status} at "
+             f"{local_time(ended)} ({summary.get('reason', '')})"]
     finals = final_val_bce(run_dir)
     for robot, v in sorted((summary.get("learners") or {}).items(), key=lambda kv: int(kv[0])):
         val = v.get("final_val_bce", finals.get(int(robot)))

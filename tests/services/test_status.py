@@ -27,7 +27,8 @@ def test_a_finished_run_is_answered_from_its_summary_at_once(tmp_path):
     proc, took = status(str(run_dir))
     assert proc.returncode == 0 and took < PROMPT_S
     lines = proc.stdout.splitlines()
-    assert lines[0].startswith("run demo-1: not running; finished ok at ") and "(all 2 learners finished)" in lines[0]
+    assert lines[0].startswith("run demo-1 (smoke, fourier, procedural 2x2, 2 robots): not running; finished ok at ")
+    assert "(all 2 learners finished)" in lines[0]
     assert lines[1:] == ["  learner   0  rounds    60  final val_bce 0.1250", "  learner   1  rounds    60  final val_bce 0.2500"]
     failed = recorded_run(tmp_path / "failed", ok=False)
     proc, _ = status("--config", str(failed / "config.yaml"))
