@@ -12,13 +12,14 @@ REFUSED_OUT_FOR_GOOD-th time it is left out for refused States: then for good (e
 the team ``silent_after`` again).
 Silence is counted while the node waits, not while it computes (:meth:`Membership.paused`).
 
-A neighbour left out because it was gone or silent (its host lost, a link cut, a partition)
-learnt apart meanwhile, and so did this node: their parameters may then lie farther apart than
-the screen's distance limit, and each would refuse the other for good. For REUNION_ROUNDS rounds
-after its return, its States pass the screen's other checks only and are pulled within the
-limit (``clip``) before the update, so each moves the other by at most what the limit allows,
-and the two parts of the team meet again. A neighbour left out for sending refused States gets
-no reunion.
+A neighbour left out because it was gone (its liveliness token vanished: its host lost, a link
+cut, a partition) learnt apart meanwhile, and so did this node: their parameters may then lie
+farther apart than the screen's distance limit, and each would refuse the other for good. For
+REUNION_ROUNDS rounds after its return, its States pass the screen's other checks only and are
+pulled within the limit (``clip``) before the update, so each moves the other by at most what the
+limit allows, and the two parts of the team meet again. A neighbour left out while its token
+stayed (silent, or sending refused States) gets no reunion: a member that goes quiet for a while
+must not win a looser check by it (a liar silent once then had its lies pulled in for 50 rounds).
 
 :class:`Replay` keeps the States a node sent in its last ``keep_rounds`` rounds and sends them
 again to a neighbour that restarted behind, so that it replays the rounds it lost with exactly
@@ -84,18 +85,18 @@ class RoundBuffer:
 
 
 class Reunion:
-    """A neighbour left out because it was gone or silent (a lost host, a cut link) learnt apart
-    meanwhile; once back, its States farther than the screen's limit are taken pulled within it
-    (``clip``), not refused, for REUNION_ROUNDS rounds, so two parts of a team meet again."""
+    """A neighbour left out because it was gone (a lost host, a cut link) learnt apart meanwhile;
+    once back, its States farther than the screen's limit are taken pulled within it (``clip``),
+    not refused, for REUNION_ROUNDS rounds, so two parts of a team meet again."""
 
     def __init__(self, clip: Clip | None):
         self.clip = clip
-        self.away: set[int] = set()  # left out as gone or silent
+        self.away: set[int] = set()  # left out as gone
         self.until: dict[int, int] = {}  # neighbour -> the last round its far States are pulled in
 
     def __call__(self, j: int, rnd: int) -> bool:
         """Whether neighbour ``j``'s States of round ``rnd`` are taken pulled in when far: it was left
-        out as gone or silent, and is not back yet or came back at most REUNION_ROUNDS ago."""
+        out as gone, and is not back yet or came back at most REUNION_ROUNDS ago."""
         return self.clip is not None and (j in self.away or rnd <= self.until.get(j, -1))
 
     def back(self, j: int, rnd: int) -> None:
@@ -245,7 +246,6 @@ class Membership:
             elif now - self.heard[j] > silent_after:
                 what = "sent no RoundComplete" if completing else "has been silent"
                 self.leave_out(j, f"{what} for {now - self.heard[j]:.0f} s", rnd)
-                self.reunion.away.add(j)
         if self.neighbours and not self.active:
             self.alone_since = self.alone_since or now
             if now - self.alone_since > r.peer_timeout:
