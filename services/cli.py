@@ -243,7 +243,17 @@ def run_tool(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse the command line and run the subcommand; returns the exit status (2: refused)."""
+    """Parse the command line and run the subcommand; returns the exit status (2: refused, 130:
+    interrupted, also by a Ctrl-C before the command's own handler was in place)."""
+    try:
+        return command(argv)
+    except KeyboardInterrupt:  # Ctrl-C while Python still imported what the command needs
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def command(argv: list[str] | None = None) -> int:
+    """:func:`main`'s work: parse the command line and run the subcommand."""
     args = build_parser().parse_args(argv)
     if args.command == "experiment":
         from swarmmap.services.experiments import main as experiment

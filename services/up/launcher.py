@@ -59,7 +59,7 @@ from swarmmap.shared.run.progress import TeamProgress, TraversalProgress
 from swarmmap.shared.run.rundir import RunDirBusy, config_doc, hold_run_dir, local_time, read_summary, run_state
 from swarmmap.shared.run.runtime import die_with_parent
 from swarmmap.shared.run.slots import slots_dir
-from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.bus import Bus, Stopped
 from swarmmap.shared.wire.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
 from swarmmap.shared.wire.protocol import Keys, Metrics, RunDone, Scan
 from swarmmap.shared.wire.secrets import SecretsError, router_names, write_credentials
@@ -381,7 +381,7 @@ class Launcher:
                 guard = start_guard(self.network.state_path, self.run_dir / "logs" / "netns-guard.log")
                 self.network.create()
             self.start_routers()
-            with Bus.open(cfg.zenoh, self.keys, "up", 0) as bus:
+            with Bus.open(cfg.zenoh, self.keys, "up", 0, stop=self.stop) as bus:
                 bus.subscribe(self.keys.metrics("*"), Metrics, self.on_metrics, newest=1024)  # progress: never slows a publisher
                 bus.subscribe(self.keys.scan("*"), Scan, self.traversal.add, newest=1024)
                 bus.subscribe(self.keys.run_done(), RunDone, self.on_done, sender_from_key=False)
@@ -389,7 +389,7 @@ class Launcher:
                 status = self.watch(recorder)
                 if status != 130 and self.failure_code != REFUSED:  # the run is over: the services leave by themselves
                     self.let_leave(lambda: {f"{service}-{ident}" for service, ident in bus.alive()})  # (run/done)
-        except Interrupted:
+        except (Interrupted, Stopped):
             log.info("interrupted while the services started; stopping every service")
             status = 130
         except RuntimeError as exc:
@@ -399,6 +399,8 @@ class Launcher:
             log.error("up --netns: %s", exc)
             self.failure, status = f"the run's network could not be made: {exc}", 1
         finally:
+            if self.stop.is_set() and status != 0:  # Ctrl-C: a service that died of it too is no failure of the run
+                status = 130
             self.shutdown()
             if self.network is not None:
                 self.network.remove()

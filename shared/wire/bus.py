@@ -185,6 +185,38 @@ class Publisher:
         self._pub.undeclare()
 
 
+class Stopped(Exception):
+    """The service was stopped while its session opened."""
+
+
+def _open_session(conf: zenoh.Config, stop: threading.Event | None) -> zenoh.Session:
+    """``zenoh.open(conf)``; with ``stop``, in a thread of its own, given up (:class:`Stopped`) once
+    ``stop`` is set (the session, if it opens later, is closed by that thread)."""
+    if stop is None:
+        return zenoh.open(conf)
+    out: dict[str, Any] = {}
+    done = threading.Event()
+
+    def opener() -> None:
+        try:
+            out["session"] = zenoh.open(conf)
+        except BaseException as exc:  # re-raised in the caller's thread
+            out["error"] = exc
+        done.set()
+        if stop.is_set() and "session" in out:
+            out["session"].close()
+
+    threading.Thread(target=opener, name="zenoh open", daemon=True).start()
+    while not done.wait(0.1):
+        if stop.is_set():
+            raise Stopped
+    if "error" in out:
+        raise out["error"]
+    if stop.is_set():
+        raise Stopped
+    return out["session"]
+
+
 class Bus:
     """A service's Zenoh session with the run's keys, counters and its liveliness token."""
 
@@ -207,18 +239,21 @@ class Bus:
         self.run_done: RunDone | None = None
 
     @classmethod
-    def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0, policy: dict | None = None) -> Bus:
+    def open(cls, settings: ZenohSettings, keys: Keys, service: str, ident: int | str = 0, policy: dict | None = None,
+             stop: threading.Event | None = None) -> Bus:
         """Open a Zenoh session for ``service`` ``ident`` of the run named by ``keys``; a
         secure router enforces ``policy`` (its access control).
 
         A config file Zenoh cannot read, an endpoint it cannot use or a router it cannot reach
-        (or whose certificate is not this run's router's) raises ConfigError."""
+        (or whose certificate is not this run's router's) raises ConfigError; ``stop`` set while
+        the session opens (a router that went away makes it wait for its connect timeout)
+        raises :class:`Stopped` at once."""
         who = identity(service, ident)
         if settings.insecure:
             log.warning("INSECURE: %s opens its Zenoh session without TLS, authentication or access control; "
                         "anyone who reaches the router can join this run and poison it", who)
         try:
-            session = zenoh.open(zenoh_config(settings, who, keys.run, policy))
+            session = _open_session(zenoh_config(settings, who, keys.run, policy), stop)
         except zenoh.ZError as exc:
             given = settings.model_dump(exclude_defaults=True, mode="json")
             hint = "" if settings.insecure or settings.mode == "router" else (
