@@ -26,6 +26,7 @@ offline mode does); the maps are refreshed as it goes on.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -51,24 +52,42 @@ def hear(cfg: RunConfig, stop: threading.Event) -> dict[str, BagMessages]:
     qos = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
     got = {ns: BagMessages() for ns in s.namespaces}
     last: dict[str, float] = {}
+    dropped: dict[str, int] = {}
 
     def on_scan(msg, ns: str) -> None:
-        got[ns].add_scan(msg)
+        if len(got[ns].scans) >= s.max_scans:
+            dropped[ns] = dropped.get(ns, 0) + 1
+            if dropped[ns] == 1:
+                log.warning("robot %s: %d scans heard, ros2.max_scans; its further scans are dropped and counted", ns,
+                            s.max_scans)
+            return
+        try:
+            got[ns].add_scan(msg)
+        except ValueError as exc:
+            dropped[ns] = dropped.get(ns, 0) + 1
+            log.warning("robot %s: a scan refused: %s", ns, exc)
+            return
         last[ns] = time.monotonic()
 
     for ns in s.namespaces:
         node.create_subscription(LaserScan, f"/{ns}/{s.scan_topic}", lambda m, ns=ns: on_scan(m, ns), qos)
         node.create_subscription(Odometry, f"/{ns}/{s.odom_topic}", lambda m, ns=ns: got[ns].add_odom(m), qos)
-    log.info("listening on ROS 2 for %s", ", ".join(f"/{ns}/{s.scan_topic} + /{ns}/{s.odom_topic}" for ns in s.namespaces))
+    log.info("listening on ROS 2 (ROS_DOMAIN_ID %s) for %s", os.environ.get("ROS_DOMAIN_ID", "0, the default"),
+             ", ".join(f"/{ns}/{s.scan_topic} + /{ns}/{s.odom_topic}" for ns in s.namespaces))
     start, said = time.monotonic(), 0.0
+    publishers = Publishers(node, [f"/{ns}/{t}" for ns in s.namespaces for t in (s.scan_topic, s.odom_topic)])
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
             now = time.monotonic()
+            publishers.check(now)
             silent = [ns for ns in s.namespaces if ns not in last]
             if not silent and now - max(last.values()) >= s.idle_s:
+                break
+            if now - start > s.max_input_s:
+                log.warning("the input is over after %.0f s (ros2.max_input_s), though scans still come", s.max_input_s)
                 break
             if silent and now - start > s.wait_s:
                 raise ConfigError(f"ros2: no LaserScan from {', '.join(f'/{ns}/{s.scan_topic}' for ns in silent)} within "
@@ -80,7 +99,33 @@ def hear(cfg: RunConfig, stop: threading.Event) -> dict[str, BagMessages]:
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
+    if dropped:
+        log.warning("scans dropped: %s", ", ".join(f"{ns} {n}" for ns, n in sorted(dropped.items())))
     return got
+
+
+class Publishers:
+    """Says, once per topic, when a topic a robot's input comes from has more than one publisher:
+    DDS without its security plug-ins lets anyone on the domain publish there, and their scans
+    would be taken as the robot's (docs/security.md)."""
+
+    def __init__(self, node, topics: list[str], every_s: float = 2.0):
+        self.node, self.topics, self.every_s = node, topics, every_s
+        self.told: set[str] = set()
+        self.checked = 0.0
+
+    def check(self, now: float) -> None:
+        if now - self.checked < self.every_s:
+            return
+        self.checked = now
+        for topic in self.topics:
+            found = self.node.get_publishers_info_by_topic(topic)
+            if len(found) > 1 and topic not in self.told:
+                self.told.add(topic)
+                names = sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in found)
+                log.warning("%s has %d publishers (%s): every one's messages are taken as the robot's; if one is not "
+                            "the robot's, stop it (ROS 2 without SROS2 cannot tell them apart)", topic, len(found),
+                            ", ".join(names))
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:

@@ -534,6 +534,10 @@ class Ros2Settings(Section):
     idle_s: float = Field(5.0, gt=0, description="the robots' input is over once every robot has sent scans and none came "
                                                  "for this long")
     wait_s: float = Field(600.0, gt=0, description="how long to wait for every robot's first scan before refusing")
+    max_input_s: float = Field(3600.0, gt=0, description="the input is over after this long, however busy (a publisher "
+                                                         "that never stops cannot hold it open)")
+    max_scans: int = Field(200_000, ge=1, description="scans kept per robot; beyond them its further scans are dropped, "
+                                                      "counted and said once")
     publish: bool = Field(False, description="the observer publishes every robot's maps and the team's /map on ROS 2 "
                                              "(swarmmap ros2 sets it)")
 

@@ -299,8 +299,11 @@ class BagMessages:
 
     def add_scan(self, msg) -> None:
         ranges = np.asarray(msg.ranges, np.float64)
+        if len(ranges) > MAX_BEAMS:
+            raise ValueError(f"a LaserScan of {len(ranges)} beams (at most {MAX_BEAMS})")
         if msg.range_max > 0:  # beyond the sensor's stated range: no measurement (a driver's error code)
             ranges[np.isfinite(ranges) & (ranges > msg.range_max)] = np.nan
+        ranges[np.isfinite(ranges) & (ranges < max(float(msg.range_min), 0.0))] = np.nan  # each scan by its own limits
         ranges[np.isposinf(ranges)] = float(msg.range_max)  # REP 117: +inf is no return within range
         self.scans.append((_stamp(msg.header), msg.header.frame_id.lstrip("/"), ranges.tolist(),
                            float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max)))
@@ -378,9 +381,6 @@ def messages_log(source: str, got: BagMessages, use_odom: bool, topics: BagTopic
     scans = got.scans
     if not scans:
         raise DatasetError(path, f"no messages on {topics.scan!r}")
-    widths = {len(s[2]) for s in scans}
-    if len(widths) > 1:
-        raise DatasetError(path, f"the scans on {topics.scan} change their number of beams ({sorted(widths)})")
     scans = [scans[k] for k in np.argsort([s[0] for s in scans], kind="stable")]  # time order, whatever the bag's
     t = np.array([s[0] for s in scans])
     frame = scans[0][1]
@@ -408,8 +408,14 @@ def messages_log(source: str, got: BagMessages, use_odom: bool, topics: BagTopic
     notes = [f"poses from {how}"]
     if len(kept) < len(scans):
         notes.append(f"left out {len(scans) - len(kept)} scans outside the poses' time span")
-    return LaserLog(source=source, t=t[inside], poses=poses[inside], angles=first[3] + first[4] * np.arange(len(first[2])),
-                    ranges=np.array([x[2] for x in kept], np.float64), min_range_m=first[5], notes=notes,
+    alike = np.array([len(x[2]) == len(first[2]) and x[3:5] == first[3:5] for x in kept])  # one sensor's beams
+    if not alike.all():
+        notes.append(f"left out {int((~alike).sum())} scans of other beams than the first's ({len(first[2])} from "
+                     f"{first[3]:.3f} rad by {first[4]:.5f}): another sensor, or another publisher on the topic")
+        kept = [x for x, same in zip(kept, alike) if same]
+    return LaserLog(source=source, t=t[inside][alike], poses=poses[inside][alike],
+                    angles=first[3] + first[4] * np.arange(len(first[2])), ranges=np.array([x[2] for x in kept], np.float64),
+                    min_range_m=min(x[5] for x in kept), notes=notes,  # (each scan's own range_min already applied)
                     no_return_m=first[6] if first[6] > 0 else math.inf)  # a range_max left at 0: no no-return value
 
 

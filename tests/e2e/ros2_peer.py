@@ -6,6 +6,7 @@ odometry on two robots' namespaces, then records every nav_msgs/OccupancyGrid it
 Half the log's first N scans go to each namespace (``/<ns>/scan``, ``/<ns>/odom``), once every
 publisher has a subscriber and a second more; then it listens to ``/<ns>/map``, ``/<ns>/map_std`` and ``/map``
 (reliable, transient local) and rewrites OUT.json after every map until it is stopped (SIGTERM).
+A second node of it, a stranger, holds a publisher on the first namespace's scan topic.
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ def main() -> None:
     node = rclpy.create_node("swarmmap_test_peer")
     pubs = {ns: (node.create_publisher(LaserScan, f"/{ns}/scan", 50), node.create_publisher(Odometry, f"/{ns}/odom", 50))
             for ns in a.namespaces}
+    # A stranger on the domain: a second node with a publisher on the first robot's scan topic
+    # (it sends nothing; the team must name it).
+    stranger = rclpy.create_node("swarmmap_test_stranger")
+    stranger.create_publisher(LaserScan, f"/{a.namespaces[0]}/scan", 10)
     got: dict[str, list[dict]] = {}
 
     def on_map(msg: OccupancyGrid, topic: str) -> None:
@@ -90,6 +95,7 @@ def main() -> None:
     os.replace(a.out + ".tmp", a.out)
     while not stopped:
         rclpy.spin_once(node, timeout_sec=0.1)
+    stranger.destroy_node()
     node.destroy_node()
     rclpy.shutdown()
 

@@ -53,6 +53,8 @@ def test_ros2_robots_scans_in_occupancy_grids_out(tmp_path):
     assert doc["published"] == {"robot_a": 120, "robot_b": 120}, peer_out
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["ok"] and summary["robots"] == 2 and "reference" in summary
+    assert "/robot_a/scan has 2 publishers (/swarmmap_test_peer, /swarmmap_test_stranger)" in err, err[-3000:]
+    assert f"ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}" in err
     for ns in ("robot_a", "robot_b"):  # what the team heard is kept, replayable
         assert (run_dir / "input" / ns).is_dir()
     with np.load(run_dir / "groundtruth.npz") as gt:

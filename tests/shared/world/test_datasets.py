@@ -506,3 +506,35 @@ def test_a_ros1_chunk_that_inflates_to_more_than_it_states_is_refused(tmp_path):
         check_ros1(bag)
     with pytest.raises(DatasetError, match="refused before it is read"):
         read_log(bag)
+
+
+def test_each_heard_scan_is_judged_by_its_own_limits_and_another_sensors_scans_are_left_out():
+    """A LaserScan's readings below its own range_min or above its range_max are no measurement;
+    scans of other beams than the first's (another publisher on the topic) are left out, said in
+    the log's notes; one of more than MAX_BEAMS beams is refused."""
+    from types import SimpleNamespace
+
+    from swarmmap.shared.world.datasets import MAX_BEAMS, BagMessages, messages_log
+
+    def scan(k, ranges, range_min=0.1, angle_min=-1.0):
+        header = SimpleNamespace(stamp=SimpleNamespace(sec=k, nanosec=0), frame_id="laser")
+        return SimpleNamespace(header=header, ranges=ranges, angle_min=angle_min, angle_increment=0.5, range_min=range_min,
+                               range_max=5.0)
+
+    def odom(k):
+        pose = SimpleNamespace(position=SimpleNamespace(x=0.1 * k, y=0.0), orientation=SimpleNamespace(x=0, y=0, z=0, w=1))
+        return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=k, nanosec=0), frame_id="odom"),
+                               child_frame_id="laser", pose=SimpleNamespace(pose=pose))
+
+    got = BagMessages()
+    for k in range(6):
+        got.add_odom(odom(k))
+    got.add_scan(scan(1, [0.05, 1.0, 6.0, 2.0, 3.0]))
+    got.add_scan(scan(2, [0.05, 1.0, 2.0, 2.0, 3.0], range_min=0.01))  # its own limit lets 0.05 through
+    got.add_scan(scan(3, [0.01] * 7, range_min=0.0))  # another publisher: 7 beams
+    got.add_scan(scan(4, [1.0] * 5, angle_min=0.0))  # other angles
+    log = messages_log("test", got, True, BagTopics())
+    assert log.ranges.shape == (2, 5) and any("left out 2 scans of other beams" in n for n in log.notes)
+    assert np.isnan(log.ranges[0, 0]) and np.isnan(log.ranges[0, 2]) and log.ranges[1, 0] == pytest.approx(0.05)
+    with pytest.raises(ValueError, match="beams"):
+        got.add_scan(scan(5, [1.0] * (MAX_BEAMS + 1)))
