@@ -102,13 +102,16 @@ class SensorModel:
         self.cfg = cfg
         self.rng = np.random.default_rng([cfg.seed, robot, 1])
 
-    def samples(self, scan: Scan) -> Samples:
+    def samples(self, scan: Scan, again: bool = False) -> Samples:
+        """``scan``'s labelled points; a scan served ``again`` (a restarted world's) draws from a
+        generator of its own, so the next new scan's points are those of a run without the restart."""
         s = self.cfg.lidar
-        ranges, hit, valid = sensor_model(scan.ranges.numpy(), scan.hit.numpy().astype(bool), self.rng,
+        rng = np.random.default_rng([self.cfg.seed, int(scan.sender), 2, int(scan.seq)]) if again else self.rng
+        ranges, hit, valid = sensor_model(scan.ranges.numpy(), scan.hit.numpy().astype(bool), rng,
                                           noise_std=s.range_noise_std_m, dropout_prob=s.dropout_prob,
                                           min_range=self.cfg.lidar_min_range_m(), max_range=scan.max_range)
         points, labels = beam_samples(scan.pose[:2], scan.angles.numpy()[valid], ranges[valid], hit[valid], scan.max_range,
-                                      s.samples_per_beam, s.occupied_depth_m, sampling=s.sampling, rng=self.rng,
+                                      s.samples_per_beam, s.occupied_depth_m, sampling=s.sampling, rng=rng,
                                       free_on_max_range=s.free_on_max_range)
         return Samples(run=scan.run, sender=scan.sender, seq=scan.seq, t=scan.t, position=list(scan.pose[:2]),
                        points=Tensor.of(points, "<f4"), labels=Tensor.of(labels, "<f4"), last=scan.last)
@@ -142,12 +145,19 @@ def live(cfg: RunConfig, robot: int, stop: threading.Event) -> int:
         out = HeldUntilMatched(bus.publisher(keys.samples(robot)), robot)
         bus.subscribe(keys.scan(robot), Scan, inbox.put, direct=True)  # a full inbox holds the world back
         bus.announce()
-        count = points = 0
+        count = points = repeated = 0
+        newest = -1
         try:
             while not stop.is_set():
                 if (scan := inbox.get(timeout=0.2)) is None:
                     continue
-                samples = model.samples(scan)
+                again = scan.seq <= newest  # a restarted world drives its traversal again from its start
+                if again and repeated == 0:
+                    log.warning("robot %d: scan %d again after scan %d (the world restarted its traversal?): the learner "
+                                "drops what it has; its sampling here goes on as if they had not come", robot, scan.seq, newest)
+                repeated += again
+                newest = max(newest, scan.seq)
+                samples = model.samples(scan, again)
                 payload = encode(samples)
                 out.put(payload, scan.last, stop)
                 if recorder is not None:
