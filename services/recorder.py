@@ -423,11 +423,17 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
             "bytes_received": last.bytes_received if last else None,
             "refused": last.refused if last else None,
             "repeated_samples": last.repeated_samples if last else None,
+            "refused_from": {str(j): n for j, n in last.refused_from} if last else {},
         }
     started = time.time() - wall if started is None else started
+    refusals: dict[str, int] = {}  # per robot: its messages its neighbours refused
+    for entry in learners.values():
+        for j, n in entry["refused_from"].items():
+            refusals[j] = refusals.get(j, 0) + n
     doc = {"run_id": cfg.run_id, "preset": cfg.preset, "robots": cfg.robots, "rounds": cfg.rounds(),
            "transport": cfg.transport(), "ok": ok, "reason": reason, "wall_time_s": round(wall, 3),
-           "started": round(started, 3), "finished": round(time.time(), 3), "learners": learners}
+           "started": round(started, 3), "finished": round(time.time(), 3), "learners": learners,
+           "refusals": dict(sorted(refusals.items(), key=lambda kv: int(kv[0])))}
     if earlier:
         for robot, entry in learners.items():  # the first attempt's, as it was (metrics.csv rounds it)
             if (first_bce := ((earlier.get("learners") or {}).get(robot) or {}).get("first_val_bce")) is not None:

@@ -122,6 +122,7 @@ class ClockExchange:
         self.heard.pop(j, None)
         self.newest.pop(j, None)
         self.stats.refused["equivocation"] += 1
+        self.stats.refused_from[j] += 1
         log.warning("node %d: neighbour %d sent two different States for its round %d; it is left out for the rest of "
                     "the run", self.node_id, j, msg.round)
         if self.forget is not None:

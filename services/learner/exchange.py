@@ -69,6 +69,7 @@ class ExchangeStats:
     resends: int = 0
     final_peers: dict[int, np.ndarray] = field(default_factory=dict)
     refused: Counter[str] = field(default_factory=Counter)
+    refused_from: Counter[int] = field(default_factory=Counter)  # the same, per neighbour
     logged: set[tuple[str, int]] = field(default_factory=set)
     left_out: int = 0  # times a neighbour was left out of a round (gone or silent)
     rejoined: int = 0  # times one came back
@@ -80,6 +81,7 @@ class ExchangeStats:
 def refuse(stats: ExchangeStats, node_id: int, msg: Envelope, why: str, reason: str) -> None:
     """Count a refused State; log the first of each reason per sender."""
     stats.refused[reason] += 1
+    stats.refused_from[msg.sender] += 1
     if (reason, msg.sender) not in stats.logged:
         stats.logged.add((reason, msg.sender))
         log.warning("node %d: refused the %s of node %d for round %d: %s (further ones are only counted)", node_id,

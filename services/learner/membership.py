@@ -162,6 +162,7 @@ class Membership:
         self.returning.discard(j)
         self.refused_since.pop(j, None)
         self.stats.refused[reason] += 1
+        self.stats.refused_from[j] += 1
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
 

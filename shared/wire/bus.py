@@ -230,6 +230,7 @@ class Bus:
         self.sent = RateCounter()
         self.received = RateCounter()
         self.dropped: collections.Counter[str] = collections.Counter()
+        self.dropped_on: collections.Counter[str] = collections.Counter()  # the same, per key (whose sender it names)
         self._logged: set[tuple[str, str]] = set()
         self._refusals: dict[str, collections.deque[float]] = collections.defaultdict(
             lambda: collections.deque(maxlen=REFUSALS_TO_MUTE))
@@ -348,6 +349,7 @@ class Bus:
     def refuse(self, key: str, err: ProtocolError) -> None:
         """Count a refused payload; log the first of each (key, reason); mute a key that floods."""
         self.dropped[err.reason] += 1
+        self.dropped_on[key] += 1
         if (key, err.reason) not in self._logged:
             self._logged.add((key, err.reason))
             log.warning("dropped a message on %s (%s); further ones like it are only counted", key, err)
@@ -391,6 +393,7 @@ class Bus:
             key = str(sample.key_expr)
             if self._muted and self.muted(key):
                 self.dropped["muted"] += 1
+                self.dropped_on[key] += 1
                 return
             payload = sample.payload.to_bytes()
             self.received.add(key, len(payload))

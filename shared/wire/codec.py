@@ -239,7 +239,7 @@ MAX_MATRICES = 4096  # a lowrank State's blocks: one per weight matrix
 BOUNDS: dict[str, Bounds] = {
     "State": Bounds(None, 16 + MAX_MATRICES, 16 + 5 * MAX_MATRICES),
     "RoundComplete": Bounds(4096, 1, 0),
-    "Metrics": Bounds(16384, 1, 0),
+    "Metrics": Bounds(16384, 2 + 128, 3 * 128),
     "RunDone": Bounds(65536, 2, 10_000),
     "Scan": Bounds(None, 8, 16),
     "Samples": Bounds(None, 6, 16),

@@ -426,6 +426,9 @@ class Metrics(Message):
     pid: Annotated[int, Field(ge=0)] = 0
     refused: Annotated[int, Field(ge=0)] = 0
     repeated_samples: Annotated[int, Field(ge=0)] = 0  # Samples of scans it had already (a restarted world's), dropped
+    # [neighbour, messages of it refused] for each neighbour this learner refused anything of
+    refused_from: Annotated[list[Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]],
+                            Field(max_length=128)] = []
     final: bool = False
 
 

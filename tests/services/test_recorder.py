@@ -284,3 +284,16 @@ def test_the_recorder_refuses_metrics_no_learner_of_the_run_sends(tmp_path):
     rec.metrics.close()
     rows = (tmp_path / "metrics.csv").read_text().splitlines()
     assert refused == 100_000 - 22 and len(rows) == 1 + 2 + 11
+
+
+def test_the_summary_counts_each_robots_refused_messages_by_who_refused_them(tmp_path):
+    """A learner's final Metrics say whose messages it refused; summary.json keeps that per learner
+    and adds it up per robot (``refusals``: what the robot's neighbours refused of it)."""
+    from swarmmap.services.recorder import summary
+
+    cfg = RunConfig(run_dir=tmp_path, robots=3, learner={"rounds": 10})
+    rec = MetricsRecorder(tmp_path / "metrics.csv")
+    for robot, refused in ((0, [[2, 40]]), (1, [[0, 1], [2, 60]]), (2, [])):
+        rec.add(metrics(robot, 10, final=True).model_copy(update={"refused_from": refused}))
+    doc = summary(cfg, rec, True, "all 3 learners finished", 12.0)
+    assert doc["learners"]["1"]["refused_from"] == {"0": 1, "2": 60} and doc["refusals"] == {"0": 1, "2": 100}
