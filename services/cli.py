@@ -18,7 +18,7 @@ from pathlib import Path
 
 from swarmmap.shared.run.config import DEFAULT_PRESET, PRESETS, ConfigError, Ros2Settings, RunConfig, resolve
 from swarmmap.shared.run.flags import add_common_arguments, add_field_argument, add_model_arguments, config_from_args
-from swarmmap.shared.run.runtime import setup_logging, shutdown_event
+from swarmmap.shared.run.runtime import Stopped, setup_logging, shutdown_event
 
 SUMMARY = ("swarmmap: decentralised multi-robot mapping with uncertainty (DiNNO and Bayesian networks) "
            "as services on Zenoh.")
@@ -283,6 +283,9 @@ def command(argv: list[str] | None = None) -> int:
         log.info("SLURM job %s, task %s, on node %s", os.environ.get("SLURM_JOB_ID", "?"), os.environ.get("SLURM_PROCID", "?"), node)
     try:
         return _runner(args.command)(cfg, stop)
+    except Stopped:
+        log.info("stopped while it opened its session")
+        return 130
     except ConfigError as exc:
         if stop.is_set():  # stopped while it opened its session (the router stopped first): no config error
             log.info("stopped before it was under way")

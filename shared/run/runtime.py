@@ -32,6 +32,14 @@ def setup_logging(level: str, name: str) -> logging.Logger:
     return logging.getLogger(name)
 
 
+SHUTDOWN: threading.Event | None = None  # the process's, once shutdown_event() made it
+
+
+class Stopped(Exception):
+    """The process was stopped (SIGINT, SIGTERM) while it waited for something that does not
+    look at its shutdown event itself (a Zenoh session opening)."""
+
+
 def shutdown_event() -> threading.Event:
     """An event set on SIGINT or SIGTERM; long loops wait on it instead of sleeping.
 
@@ -39,7 +47,8 @@ def shutdown_event() -> threading.Event:
     (A handler runs on the main thread between two of its steps, possibly while that thread holds
     the event's lock, in ``stop.wait()`` or in a handler interrupted by the next signal: setting
     the event there deadlocked a service sent two SIGTERMs at once, for good.)"""
-    stop = threading.Event()
+    global SHUTDOWN
+    stop = SHUTDOWN = threading.Event()
     read_end, write_end = os.pipe()
     os.set_blocking(write_end, False)
 

@@ -28,7 +28,9 @@ from typing import Any, TypeVar
 
 import zenoh
 
+from swarmmap.shared.run import runtime
 from swarmmap.shared.run.config import ConfigError, ZenohSettings
+from swarmmap.shared.run.runtime import Stopped
 from swarmmap.shared.wire.codec import decode, encode
 from swarmmap.shared.wire.protocol import DEFAULT_MAX_MESSAGE_BYTES, Keys, Message, ProtocolError, RunDone, Tensor, WorldMap
 from swarmmap.shared.wire.secrets import CA_FILE, CERT_FILE, KEY_FILE, SecretsError, clock_problem, enrol, own_folder
@@ -185,10 +187,6 @@ class Publisher:
         self._pub.undeclare()
 
 
-class Stopped(Exception):
-    """The service was stopped while its session opened."""
-
-
 def _open_session(conf: zenoh.Config, stop: threading.Event | None) -> zenoh.Session:
     """``zenoh.open(conf)``; with ``stop``, in a thread of its own, given up (:class:`Stopped`) once
     ``stop`` is set (the session, if it opens later, is closed by that thread)."""
@@ -246,15 +244,16 @@ class Bus:
         secure router enforces ``policy`` (its access control).
 
         A config file Zenoh cannot read, an endpoint it cannot use or a router it cannot reach
-        (or whose certificate is not this run's router's) raises ConfigError; ``stop`` set while
-        the session opens (a router that went away makes it wait for its connect timeout)
-        raises :class:`Stopped` at once."""
+        (or whose certificate is not this run's router's) raises ConfigError; ``stop`` (by default
+        the process's shutdown event, :func:`~swarmmap.shared.run.runtime.shutdown_event`) set while
+        the session opens (a router that went away makes it wait for its connect timeout) raises
+        :class:`Stopped` at once."""
         who = identity(service, ident)
         if settings.insecure:
             log.warning("INSECURE: %s opens its Zenoh session without TLS, authentication or access control; "
                         "anyone who reaches the router can join this run and poison it", who)
         try:
-            session = _open_session(zenoh_config(settings, who, keys.run, policy), stop)
+            session = _open_session(zenoh_config(settings, who, keys.run, policy), stop or runtime.SHUTDOWN)
         except zenoh.ZError as exc:
             given = settings.model_dump(exclude_defaults=True, mode="json")
             hint = "" if settings.insecure or settings.mode == "router" else (
