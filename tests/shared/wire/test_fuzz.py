@@ -24,6 +24,7 @@ from swarmmap.shared.wire.protocol import (
     Tensor,
     WorldMap,
 )
+from tests.fuzzing import mutation_of
 
 RUN = "run-1"
 KINDS = sorted(MESSAGE_TYPES)
@@ -81,28 +82,8 @@ def test_random_bytes_are_refused_or_decoded(memory_limit, payload, kind):
     judged(payload, kind, "random")
 
 
-@st.composite
-def mutated(draw) -> bytes:
-    """A valid payload with a few bytes changed, cut out, inserted or repeated."""
-    data = bytearray(draw(st.sampled_from(VALID)))
-    for _ in range(draw(st.integers(1, 4))):
-        at = draw(st.integers(0, max(len(data) - 1, 0)))
-        how = draw(st.sampled_from(["flip", "cut", "insert", "repeat", "truncate"]))
-        if how == "flip" and data:
-            data[at] ^= draw(st.integers(1, 255))
-        elif how == "cut":
-            del data[at : at + draw(st.integers(1, 16))]
-        elif how == "insert":
-            data[at:at] = draw(st.binary(min_size=1, max_size=16))
-        elif how == "repeat":
-            data[at:at] = data[at : at + draw(st.integers(1, 64))] * draw(st.integers(1, 64))
-        else:
-            del data[at:]
-    return bytes(data)
-
-
 @FUZZ
-@given(payload=mutated(), kind=st.sampled_from(KINDS))
+@given(payload=st.sampled_from(VALID).flatmap(mutation_of), kind=st.sampled_from(KINDS))
 def test_mutated_payloads_are_refused_or_decoded(memory_limit, payload, kind):
     memory_limit(256)
     judged(payload, kind, "mutated")

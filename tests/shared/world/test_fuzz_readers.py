@@ -25,6 +25,7 @@ from swarmmap.shared.world.datasets import DatasetError, LaserLog, read_log, wri
 from swarmmap.shared.world.floorplan import PlanError
 from swarmmap.shared.world.plans import load_ros_map, read_image
 from swarmmap.shared.world.recording import RecordingError, RecordingWriter, read_recording
+from tests.fuzzing import mutation_of
 
 FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 SLOW = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -41,26 +42,6 @@ def _report_inputs():
 
 def tried(reader: str) -> None:
     TRIED[reader] = TRIED.get(reader, 0) + 1
-
-
-@st.composite
-def mutation_of(draw, data: bytes) -> bytes:
-    """``data`` with a few bytes changed, cut out, inserted or repeated."""
-    out = bytearray(data)
-    for _ in range(draw(st.integers(1, 4))):
-        at = draw(st.integers(0, max(len(out) - 1, 0)))
-        how = draw(st.sampled_from(["flip", "cut", "insert", "repeat", "truncate"]))
-        if how == "flip" and out:
-            out[at] ^= draw(st.integers(1, 255))
-        elif how == "cut":
-            del out[at : at + draw(st.integers(1, 64))]
-        elif how == "insert":
-            out[at:at] = draw(st.binary(min_size=1, max_size=32))
-        elif how == "repeat":
-            out[at:at] = out[at : at + draw(st.integers(1, 64))] * draw(st.integers(1, 32))
-        else:
-            del out[at:]
-    return bytes(out)
 
 
 # ----------------------------------------------------------------- CARMEN logs
