@@ -65,13 +65,14 @@ def test_a_key_that_floods_refused_payloads_is_muted_and_its_bombs_are_not_unpac
         b.subscribe(keys.state(0), State, got.append, check=three_params)
         b.announce()
         assert wait_until(lambda: ("learner", "1") in a.alive("learner"), 10)
-        raw = a.session.declare_publisher(keys.state(0))
+        pub = a.publisher(keys.state(0))
+        assert wait_until(pub.matched, 10)  # (what a publisher sends before it knows its subscriber is lost)
         head = msgpack.packb({"v": 2, "kind": "State", "run": run_id, "sender": 0, "round": 0})
         bomb = b"\xde\x00\x06" + head[1:] + msgpack.packb("params") + b"\xdd" + (1 << 16).to_bytes(4, "big") + b"\x80" * (1 << 16)
         for _ in range(REFUSALS_TO_MUTE):
-            raw.put(bomb)
+            pub.put_bytes(bomb)
         assert wait_until(lambda: b.dropped["malformed"] == REFUSALS_TO_MUTE, 30)
-        a.publisher(keys.state(0)).put(State(run=run_id, sender=0, round=1, params=Tensor.of(np.ones(3, np.float32))))
+        pub.put(State(run=run_id, sender=0, round=1, params=Tensor.of(np.ones(3, np.float32))))
         assert wait_until(lambda: b.dropped["muted"] == 1, 30)
         assert got == [] and b.muted(keys.state(0))
 
