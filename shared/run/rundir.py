@@ -223,11 +223,16 @@ def hold_run_dir(run_dir: Path, what: str) -> Iterator[None]:
     """Hold ``run_dir`` for this process (``what``: ``swarmmap up``, ``swarmmap prepare``) while the
     block runs: an exclusive lock on its LOCK_FILE, taken at once or refused with
     :class:`RunDirBusy` naming the holder. Two launchers never prepare or run one directory at
-    once. A directory this made and the block leaves empty (its checks refused the run) is removed."""
+    once. A directory this made and the block leaves empty (its checks refused the run) is removed;
+    one that cannot be written is not held (the launcher's checks refuse it, saying why)."""
     made = not run_dir.exists()
-    run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError:  # a directory that cannot be written: the launcher's own checks refuse it, naming why
+        yield
+        return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -240,6 +245,7 @@ def hold_run_dir(run_dir: Path, what: str) -> Iterator[None]:
         try:
             yield
         finally:
+            os.ftruncate(fd, 0)  # the holder is gone: a refused launcher leaves the directory as it found it
             if made and [p.name for p in run_dir.iterdir()] == [LOCK_FILE]:
                 path.unlink(missing_ok=True)
                 with contextlib.suppress(OSError):
