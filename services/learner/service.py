@@ -181,14 +181,6 @@ class RobotLearner:
                "send_s": self.stats.send_s, "refused": refused, "wall_time_s": wall}
         return {k: v + self.before.get(k, 0) for k, v in now.items()}
 
-    def refused_from(self) -> list[list[int]]:
-        """[neighbour, messages of it refused], by its exchange and its bus (malformed, muted)."""
-        counts = Counter(self.stats.refused_from)
-        for key, n in self.bus.dropped_on.items():
-            if key.split("/")[-3:-2] == ["learners"] and key.split("/")[-2].isdigit():
-                counts[int(key.split("/")[-2])] += n
-        return [[j, n] for j, n in sorted(counts.items())][:128]
-
     def report(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> None:
         """Round ``k``'s Metrics, published."""
         msg = self.publish(self.metrics(k, theta, peers), theta)
@@ -203,7 +195,7 @@ class RobotLearner:
                        bytes_sent=int(c["bytes_sent"]), bytes_received=int(c["bytes_received"]),
                        compute_s=c["compute_s"], wait_s=c["wait_s"], send_s=c["send_s"],
                        n_points=len(self.points), pid=os.getpid(), refused=int(c["refused"]), final=final,
-                       repeated_samples=self.collector.repeated, refused_from=self.refused_from())
+                       repeated_samples=self.collector.repeated, refused_from=refused_from(self.stats, self.bus))
 
     def publish(self, msg: Metrics, theta: np.ndarray) -> Metrics:
         """Publish ``msg`` (and, in process, the State it was taken of, for the observer)."""
@@ -302,6 +294,16 @@ def state_links(learner: RobotLearner, link: Link, compressor: Compressor, cover
         coverage = None
     return StateCodec(link, robot, compressor, s.exchange_every, radius=s.comm_radius_m if dynamic else None,
                       position=(lambda: learner.collector.position) if dynamic else None, coverage=coverage)
+
+
+def refused_from(stats: ExchangeStats, bus: Bus) -> list[list[int]]:
+    """[neighbour, messages of it refused], by a learner's exchange and its bus (malformed, muted)."""
+    counts = Counter(stats.refused_from)
+    for key, n in bus.dropped_on.items():
+        parts = key.split("/")
+        if parts[-3:-2] == ["learners"] and parts[-2].isdigit():
+            counts[int(parts[-2])] += n
+    return [[j, n] for j, n in sorted(counts.items())][:128]
 
 
 def hostile(cfg: RunConfig, robot: int, transport: Transport, layout: StateLayout,

@@ -225,7 +225,7 @@ def hold_run_dir(run_dir: Path, what: str) -> Iterator[None]:
     :class:`RunDirBusy` naming the holder. Two launchers never prepare or run one directory at
     once. A directory this made and the block leaves empty (its checks refused the run) is removed;
     one that cannot be written is not held (the launcher's checks refuse it, saying why)."""
-    made = not run_dir.exists()
+    made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]  # the folders the hold makes, innermost first
     path = run_dir / LOCK_FILE
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -249,6 +249,7 @@ def hold_run_dir(run_dir: Path, what: str) -> Iterator[None]:
             if made and [p.name for p in run_dir.iterdir()] == [LOCK_FILE]:
                 path.unlink(missing_ok=True)
                 with contextlib.suppress(OSError):
-                    run_dir.rmdir()
+                    for folder in made:  # (one something else wrote into stays)
+                        folder.rmdir()
     finally:
         os.close(fd)
