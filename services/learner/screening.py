@@ -3,7 +3,9 @@ sends garbage (the round's States are then judged together: :mod:`~swarmmap.serv
 
 Honest neighbours start from the same initialisation and consensus keeps them close, so a State
 whose parameters are not finite, constant (e.g. all zero) or farther from this node's own than
-``max_distance`` times the norm of its own is refused (:func:`implausible`). A Bayesian
+``max_distance`` times the norm of its own is refused (:func:`implausible`), and so, by the
+learner's screen, is one whose norm differs from its own by more than MAX_NORM_RATIO either way
+(:func:`other_norm`: a vector scaled within the distance limit). A Bayesian
 network's means and rho are also judged apart, each against its own norm (at GROUP_FACTOR times
 the distance: early in training the means move fast for their size): its rho, about -5 each,
 makes up almost all of the whole norm and would hide any move of the means. Every State is judged against the node's own
@@ -22,6 +24,9 @@ from swarmmap.shared.learning.layout import StateLayout
 GROUP_FACTOR = 4  # a Bayesian network's means (or rho) may lie this many times max_distance of their own norm away
 
 
+MAX_NORM_RATIO = 1.25  # a neighbour's parameters' norm against this node's own, either way
+
+
 def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float) -> str | None:
     """Why a neighbour's parameters cannot come from an honest node, or None."""
     if own is not None and theirs.shape != own.shape:
@@ -31,6 +36,18 @@ def implausible(theirs: np.ndarray, own: np.ndarray | None, max_distance: float)
     if theirs.size > 1 and np.ptp(theirs) == 0:
         return f"constant parameters ({float(theirs[0]):g} everywhere)"
     return None if own is None else too_far(theirs, own, max_distance)
+
+
+def other_norm(theirs: np.ndarray, own: np.ndarray) -> str | None:
+    """Why ``theirs`` has another norm than ``own`` by more than MAX_NORM_RATIO either way, or None.
+    Neighbours that learn together keep their parameters' norms within a few percent of each other
+    (0.1% at the end of a clean smoke run): a vector scaled by 1.45, which the distance limit of
+    0.5 lets through, is not theirs. (Not for a neighbour back from learning apart: its norm may
+    differ by far more, and the reunion's loose check skips this.)"""
+    scale, norm = float(np.linalg.norm(own)), float(np.linalg.norm(theirs.astype(np.float64)))
+    if scale > 0 and not 1 / MAX_NORM_RATIO <= norm / scale <= MAX_NORM_RATIO:
+        return f"parameters of {norm / scale:.2f} x the own parameters' norm (limit {MAX_NORM_RATIO:g} either way)"
+    return None
 
 
 def too_far(theirs: np.ndarray, own: np.ndarray, max_distance: float) -> str | None:
@@ -57,14 +74,16 @@ class StateScreen:
     """``screen(theirs, own)``: why a neighbour's State is refused, or None. DSGT's States carry
     its gradient tracker and RAMEN's its counts after the parameters: those must be finite."""
 
-    def __init__(self, layout: StateLayout, max_distance: float):
-        self.layout, self.max_distance = layout, max_distance
+    def __init__(self, layout: StateLayout, max_distance: float, norms: bool = True):
+        """``norms``: judge the parameters' norm against the own (not against own parameters
+        rounds old, nor a neighbour back from learning apart: theirs may differ by far more)."""
+        self.layout, self.max_distance, self.norms = layout, max_distance, norms
         self.groups = groups(layout)
 
     def loose(self, theirs: np.ndarray, own: np.ndarray | None) -> str | None:
-        """The checks but the distance: why a State cannot come from an honest node however far
-        apart the two have learnt (a neighbour back from a partition), or None."""
-        return StateScreen(self.layout, np.inf)(theirs, own)
+        """The checks but the distance and the norm: why a State cannot come from an honest node
+        however far apart the two have learnt (a neighbour back from a partition), or None."""
+        return StateScreen(self.layout, np.inf, norms=False)(theirs, own)
 
     def clip(self, theirs: np.ndarray, own: np.ndarray) -> np.ndarray:
         """``theirs`` pulled toward ``own`` until it lies within every distance limit (the whole
@@ -92,6 +111,8 @@ class StateScreen:
             return "non-finite values after the parameters"
         mine, yours = (None if own is None else self.layout.params_of(own)), self.layout.params_of(theirs)
         why = implausible(yours, mine, self.max_distance)
+        if why is None and mine is not None and self.norms:
+            why = other_norm(yours, mine)
         if why is not None or mine is None or len(self.groups) == 1:
             return why
         for name, at in self.groups:  # each part on the scale of its own norm, more loosely (early moves are large)

@@ -237,7 +237,7 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
     s, node, rounds = learner.s, learner.node, learner.rounds
     start = node.state() if learner.start_state is None else learner.start_state
     rules, screen = exchange_rules(s), StateScreen(node.layout, s.max_state_distance)
-    stale = StateScreen(node.layout, GROUP_FACTOR * s.max_state_distance)  # against own parameters rounds old
+    stale = StateScreen(node.layout, GROUP_FACTOR * s.max_state_distance, norms=False)  # against own parameters rounds old
     # (on a dynamic disk graph two subteams that meet differ by what each learnt apart: bounds, not the screen)
     round_screen = RoundScreen(node.layout, s.robust_spread_factor) if s.robust and not learner.cfg.graph().dynamic else None
     if s.exchange_every_s > 0:

@@ -126,3 +126,17 @@ def test_each_attack_is_what_it_says():
     np.testing.assert_allclose(lie[rho], v[rho] - 2, rtol=1e-6)
     ratchet = Liar("ratchet", lay, 0)
     assert not np.allclose(ratchet.lie(v), ratchet.lie(v))  # a new direction every round
+
+
+def test_a_state_scaled_within_the_distance_limit_is_refused_by_its_norm():
+    """1.45 x a node's own parameters lies 0.45 of their norm away (under the 0.5 limit) but its
+    norm is 1.45 times theirs: refused; a neighbour back from learning apart (the loose check)
+    is not judged by its norm."""
+    from swarmmap.services.learner.screening import StateScreen
+    from swarmmap.shared.learning.layout import StateLayout
+
+    own = np.random.default_rng(0).standard_normal(1000).astype(np.float32)
+    screen = StateScreen(StateLayout(1000, tensors=(("0.weight", 0, 1000),)), 0.5)
+    assert screen(own * 1.45, own).startswith("parameters of 1.45 x the own parameters' norm")
+    assert screen(own * 1.1 + 0.01, own) is None
+    assert screen.loose(own * 1.8, own) is None
