@@ -109,9 +109,13 @@ class Publishers:
     DDS without its security plug-ins lets anyone on the domain publish there, and their scans
     would be taken as the robot's (docs/security.md)."""
 
-    def __init__(self, node, topics: list[str], every_s: float = 2.0):
+    UNKNOWN = "_NODE_NAME_UNKNOWN_"  # what DDS says of a node whose name its discovery has not brought yet
+    NAMES_WAIT_S = 10.0  # how long a second publisher waits for its name before it is told of without
+
+    def __init__(self, node, topics: list[str], every_s: float = 0.5):
         self.node, self.topics, self.every_s = node, topics, every_s
         self.told: set[str] = set()
+        self.seen: dict[str, float] = {}  # topic -> when a second publisher was first seen on it
         self.checked = 0.0
 
     def check(self, now: float) -> None:
@@ -121,6 +125,9 @@ class Publishers:
         for topic in self.topics:
             found = self.node.get_publishers_info_by_topic(topic)
             if len(found) > 1 and topic not in self.told:
+                since = self.seen.setdefault(topic, now)
+                if any(p.node_name == self.UNKNOWN for p in found) and now - since < self.NAMES_WAIT_S:
+                    continue  # their names come a moment after the publishers
                 self.told.add(topic)
                 names = sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in found)
                 log.warning("%s has %d publishers (%s): every one's messages are taken as the robot's; if one is not "
