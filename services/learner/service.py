@@ -300,9 +300,8 @@ def refused_from(stats: ExchangeStats, bus: Bus) -> list[list[int]]:
     """[neighbour, messages of it refused], by a learner's exchange and its bus (malformed, muted)."""
     counts = Counter(stats.refused_from)
     for key, n in bus.dropped_on.items():
-        parts = key.split("/")
-        if parts[-3:-2] == ["learners"] and parts[-2].isdigit():
-            counts[int(parts[-2])] += n
+        if key.startswith(f"{bus.keys.root}/learners/"):
+            counts[bus.keys.ident_of(key)] += n
     return [[j, n] for j, n in sorted(counts.items())][:128]
 
 

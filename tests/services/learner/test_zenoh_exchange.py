@@ -3,6 +3,7 @@ Algorithm 1 between two OS processes giving the reference result."""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 from pathlib import Path
@@ -24,8 +25,10 @@ def three_params(msg: State) -> None:
         raise ProtocolError("shape", f"expected 3 parameters, got {msg.params.shape}")
 
 
-@pytest.mark.integration
-def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
+@contextlib.contextmanager
+def learner_pair(zenoh_pair, run_id):
+    """(keys, a, b, got): learner 0's bus ``a`` and learner 1's ``b``, which takes learner 0's
+    States of three parameters into ``got``, once ``a`` sees ``b`` alive."""
     a_settings, b_settings = zenoh_pair
     keys = Keys("swarmmap", run_id)
     got: list[State] = []
@@ -33,6 +36,12 @@ def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
         b.subscribe(keys.state(0), State, got.append, check=three_params)
         b.announce()
         assert wait_until(lambda: ("learner", "1") in a.alive("learner"), 10)
+        yield keys, a, b, got
+
+
+@pytest.mark.integration
+def test_two_sessions_exchange_state_and_drop_bad_payloads(zenoh_pair, run_id):
+    with learner_pair(zenoh_pair, run_id) as (keys, a, b, got):
         pub = a.publisher(keys.state(0))
         raw = a.session.declare_publisher(keys.state(0))
         good = np.array([1.5, -2.0, 3.25], np.float32)
@@ -58,13 +67,7 @@ def test_a_key_that_floods_refused_payloads_is_muted_and_its_bombs_are_not_unpac
     its key is muted: what it sends next, a valid State too, is dropped unread and counted."""
     from swarmmap.shared.wire.bus import REFUSALS_TO_MUTE
 
-    a_settings, b_settings = zenoh_pair
-    keys = Keys("swarmmap", run_id)
-    got: list[State] = []
-    with Bus.open(a_settings, keys, "learner", 0) as a, Bus.open(b_settings, keys, "learner", 1) as b:
-        b.subscribe(keys.state(0), State, got.append, check=three_params)
-        b.announce()
-        assert wait_until(lambda: ("learner", "1") in a.alive("learner"), 10)
+    with learner_pair(zenoh_pair, run_id) as (keys, a, b, got):
         pub = a.publisher(keys.state(0))
         assert wait_until(pub.matched, 10)  # (what a publisher sends before it knows its subscriber is lost)
         head = msgpack.packb({"v": 2, "kind": "State", "run": run_id, "sender": 0, "round": 0})
