@@ -5,6 +5,7 @@ A run is described by one :class:`RunConfig` (written as ``RUN_DIR/config.yaml``
 
     defaults < preset < config file (``--config``) < environment (``SWARMMAP_...``) < command line
 
+The layers are pydantic-settings sources (:func:`resolve`), merged section by section.
 Environment variables name a field by its path: ``SWARMMAP_SEED`` for a top-level field,
 ``SWARMMAP_LEARNER__ROUNDS`` or ``SWARMMAP_ZENOH__CONNECT`` for a section's field; values are
 parsed as YAML (``[a, b]`` is a list). ``--set learner.lr_start=0.01`` overrides any field.
@@ -24,6 +25,8 @@ from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict, SettingsError
+from pydantic_settings.sources.types import EnvNoneType
 
 from swarmmap.shared import plugins
 from swarmmap.shared.learning.layout import state_copies
@@ -416,26 +419,70 @@ def env_names() -> dict[str, list[str]]:
     return names
 
 
-def env_overrides(environ: dict[str, str] | None = None) -> dict[str, Any]:
-    """``SWARMMAP_SEED=3`` -> {seed: 3}; ``SWARMMAP_LEARNER__ROUNDS=9`` -> {learner: {rounds: 9}}.
-
-    A ``SWARMMAP_*`` variable that names no field (and is none of LAUNCHER_VARIABLES) is refused,
-    with the closest name."""
-    environ = os.environ if environ is None else environ
+def refuse_unknown_variables(environ: typing.Mapping[str, str]) -> None:
+    """Refuse a ``SWARMMAP_*`` variable that names no field (and is none of LAUNCHER_VARIABLES),
+    with the closest name: a misspelt variable is an error, not silently ignored."""
     names = env_names()
-    tree: dict[str, Any] = {}
-    unknown = []
-    for key, raw in sorted(environ.items()):
-        if not key.startswith(ENV_PREFIX) or key in LAUNCHER_VARIABLES:
-            continue
-        if key not in names:
-            unknown.append(f"  {key}: not a swarmmap setting{did_you_mean(key, [*names, *LAUNCHER_VARIABLES])}; a variable "
-                           f"names a field by its path, as {ENV_PREFIX}SEED or {ENV_PREFIX}LEARNER__ROUNDS")
-            continue
-        _set_path(tree, names[key], _parse_scalar(raw))
+    unknown = [f"  {key}: not a swarmmap setting{did_you_mean(key, [*names, *LAUNCHER_VARIABLES])}; a variable "
+               f"names a field by its path, as {ENV_PREFIX}SEED or {ENV_PREFIX}LEARNER__ROUNDS"
+               for key in sorted(environ) if key.startswith(ENV_PREFIX) and key not in LAUNCHER_VARIABLES and key not in names]
     if unknown:
         raise ConfigError("config error (environment):\n" + "\n".join(unknown) + "\n  unset the variable(s) or correct the name")
-    return tree
+
+
+class EnvironmentLayer(EnvSettingsSource):
+    """The environment's layer: ``SWARMMAP_SEED=3`` -> {seed: 3}, ``SWARMMAP_LEARNER__ROUNDS=9`` ->
+    {learner: {rounds: 9}} (pydantic-settings' nested variables); lists and mappings written as
+    YAML (``[a, b]``), ``null`` for none. Only upper-case ``SWARMMAP_*`` names, from ``environ``."""
+
+    def __init__(self, settings_cls: type[BaseSettings], environ: typing.Mapping[str, str]):
+        super().__init__(settings_cls, case_sensitive=False, env_prefix=ENV_PREFIX, env_nested_delimiter="__",
+                         env_parse_none_str="null")
+        self.env_vars = {key.lower(): EnvNoneType(value) if value == "null" else value for key, value in environ.items()
+                         if key.startswith(ENV_PREFIX) and key not in LAUNCHER_VARIABLES}
+
+    def decode_complex_value(self, field_name: str, field: Any, value: Any) -> Any:
+        return _parse_scalar(value)
+
+
+class FileLayer(PydanticBaseSettingsSource):
+    """The config file's layer (``--config``), read by :func:`read_config_file`."""
+
+    def __init__(self, settings_cls: type[BaseSettings], path: Path | None):
+        super().__init__(settings_cls)
+        self.doc = read_config_file(path) if path else {}
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return self.doc.get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return copy.deepcopy(self.doc)
+
+
+class PresetLayer(PydanticBaseSettingsSource):
+    """The lowest layer: the preset that the layers above name (or ``preset``), and for a run on
+    real data (``world.dataset``, or ROS 2 robots: ``ros2.namespaces``) :data:`DATASET_DEFAULTS` over it."""
+
+    def __init__(self, settings_cls: type[BaseSettings], preset: str | None):
+        super().__init__(settings_cls)
+        self.preset = preset
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        above = self.current_state  # what the layers above give, merged
+        name = above.get("preset") or self.preset
+        layer: dict[str, Any] = {}
+        if name is not None:
+            if not isinstance(name, str) or name not in PRESETS:
+                raise ConfigError(f"config error:\n  preset: unknown preset {name!r}{did_you_mean(name, PRESETS)}; "
+                                  f"allowed: {', '.join(PRESETS)}")
+            layer = {**copy.deepcopy(PRESETS[name]), "preset": name}
+        if any(isinstance(tree.get(section), dict) and tree[section].get(field) for tree in (above, layer)
+               for section, field in (("world", "dataset"), ("ros2", "namespaces"))):  # a run on real data
+            layer = deep_merge(layer, DATASET_DEFAULTS)
+        return layer
 
 
 def _is_model(annotation: Any) -> bool:
@@ -511,28 +558,27 @@ def validate_config(doc: dict[str, Any]) -> RunConfig:
 
 
 def resolve(cli: dict[str, Any] | None = None, *, config_file: Path | None = None,
-            preset: str | None = None, environ: dict[str, str] | None = None) -> RunConfig:
-    """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict);
-    a run on a dataset (``world.dataset``, or ROS 2 robots: ``ros2.namespaces``) takes
-    :data:`DATASET_DEFAULTS` over its preset."""
-    file_doc = read_config_file(config_file) if config_file else {}
-    env_doc = env_overrides(environ)
-    cli = cli or {}
-    name = cli.get("preset") or env_doc.get("preset") or file_doc.get("preset") or preset
-    merged: dict[str, Any] = {}
-    if name is not None:
-        if name not in PRESETS:
-            raise ConfigError(f"config error:\n  preset: unknown preset {name!r}{did_you_mean(name, PRESETS)}; "
-                              f"allowed: {', '.join(PRESETS)}")
-        merged = deep_merge(merged, PRESETS[name])
-        merged["preset"] = name
-    given: dict[str, Any] = {}
-    for layer in (file_doc, env_doc, cli):
-        given = deep_merge(given, layer)
-    if any((layer.get(section) or {}).get(name) for layer in (given, merged)
-           for section, name in (("world", "dataset"), ("ros2", "namespaces"))):  # a run on real data
-        merged = deep_merge(merged, DATASET_DEFAULTS)
-    return validate_config(deep_merge(merged, given))
+            preset: str | None = None, environ: typing.Mapping[str, str] | None = None) -> RunConfig:
+    """Build the RunConfig from defaults < preset < file < environment < ``cli`` (a nested dict),
+    the layers merged by pydantic-settings, nested sections field by field (see the layers above)."""
+    environ = os.environ if environ is None else environ
+    refuse_unknown_variables(environ)
+
+    class Layers(BaseSettings, RunConfig):
+        model_config = SettingsConfigDict(extra="forbid", validate_default=False)
+
+        @classmethod
+        def settings_customise_sources(cls, settings_cls, init_settings, **_):
+            return (init_settings, EnvironmentLayer(settings_cls, environ), FileLayer(settings_cls, config_file),
+                    PresetLayer(settings_cls, preset))
+
+    try:
+        layered = Layers(**copy.deepcopy(cli or {}))
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc)) from None
+    except SettingsError as exc:  # a variable's value that is not YAML of its field's shape
+        raise ConfigError(f"config error (environment):\n  {exc}") from None
+    return validate_config(layered.model_dump(exclude_unset=True))
 
 
 def task_robot(given: int | None, robots: int, field: str, environ: dict[str, str] | None = None) -> int:

@@ -36,7 +36,8 @@ service it starts reads that file. Values are taken with the precedence
   per section (`world:`, `learner:`, ...).
 - **Environment**: `{ENV_PREFIX}<FIELD>` for a top-level field (`{ENV_PREFIX}ROBOTS=5`),
   `{ENV_PREFIX}<SECTION>__<FIELD>` for a section's (`{ENV_PREFIX}LEARNER__ROUNDS=50`,
-  `{ENV_PREFIX}ZENOH__CONNECT='[tcp/10.0.0.2:7447]'`); values are read as YAML.
+  `{ENV_PREFIX}ZENOH__CONNECT='[tcp/10.0.0.2:7447]'`); lists and mappings are read as YAML,
+  `null` unsets a field, and a misspelt `{ENV_PREFIX}*` name is refused with the closest one.
 - **Command line**: every service takes the top-level fields and its own section's fields as
   `--field-name` (`swarmmap learner --rounds 50`), the Zenoh fields as `--zenoh-field-name`, and any
   field as `--set section.field=value` (repeatable, the value read as YAML:

@@ -37,6 +37,19 @@ def test_precedence_file_env_cli(tmp_path):
     assert cfg.seed == 2
 
 
+def test_environment_values_lists_as_yaml_null_unsets_and_a_section_merges_field_by_field(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("run_dir: somewhere\nzenoh:\n  connect: [tcp/10.0.0.1:7447]\n  mode: client\n")
+    env = {"SWARMMAP_RUN_DIR": "null", "SWARMMAP_ZENOH__CONNECT": "[tcp/10.0.0.2:7447, tcp/10.0.0.3:7447]",
+           "SWARMMAP_LEARNER__CONSENSUS_OPTIONS": "{}", "SWARMMAP_RUN_ID": "007", "SWARMMAP_UID": "1000"}
+    cfg = resolve(config_file=f, environ=env)
+    assert cfg.run_dir is None  # null unsets what the file set
+    assert cfg.zenoh.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:7447"] and cfg.zenoh.mode == "client"
+    assert cfg.run_id == "007"  # a text field keeps its text
+    with pytest.raises(ConfigError, match="zenoh.connect: must be a list"):
+        resolve(environ={"SWARMMAP_ZENOH__CONNECT": "[tcp/10.0.0.2:7447"})
+
+
 def test_preset_sits_under_the_file(tmp_path):
     f = tmp_path / "c.yaml"
     f.write_text("learner:\n  rounds: 7\n")
