@@ -1,5 +1,5 @@
-"""Parts found by name through Python entry points: consensus rules, dataset readers, services, attacks
-and the learners' networks.
+"""Parts found by name through Python entry points: consensus rules, dataset readers, services, attacks,
+the learners' networks and the compressions of their States.
 
 swarmmap's own parts are registered the same way as anyone's, in its ``pyproject.toml``; a
 package of one's own adds a part without touching swarmmap by declaring an entry point in the
@@ -110,6 +110,25 @@ class AttackPlugin:
 
 
 @dataclass(frozen=True)
+class CompressionPlugin:
+    """A way of sending a State's vector (``learner.compression``, ``learner.slow_link_compression``).
+
+    ``make(knobs)`` builds one learner's encoder (a :class:`~swarmmap.shared.wire.compression.Encoder`,
+    the class to subclass, or its ``Chain`` for differences with error feedback) from its
+    :class:`~swarmmap.shared.wire.compression.Knobs` (``options``: ``learner.compression_options``
+    validated by ``options``). An encoder writes the wire's encodings (f32, f16, bf16, topk, sign,
+    quant, lowrank: docs/protocol.md), so receivers rebuild its States without it: a plug-in
+    chooses what to send, not a new format. ``chained``: each State adds to the one before (one
+    State a round, none sent twice with different values); ``summary``: one line for ``swarmmap
+    plugins`` and the docs."""
+
+    make: Callable[[Any], Any]
+    summary: str
+    chained: bool = False
+    options: type | None = None  # a pydantic model of the compression's own knobs
+
+
+@dataclass(frozen=True)
 class Group:
     """A kind of part: its entry-point group, what names one, and its spec type (``module:Class``,
     imported when a part is checked: a spec type may live in a module that uses this one)."""
@@ -131,7 +150,8 @@ GROUPS = {g.name: g for g in (Group("consensus", "learner.consensus", "swarmmap.
                               Group("datasets", "world.dataset", "swarmmap.shared.plugins:DatasetReader"),
                               Group("services", "service", "swarmmap.shared.wire.services:ServiceKind"),
                               Group("attacks", "faults.attack", "swarmmap.shared.plugins:AttackPlugin"),
-                              Group("models", "learner.model", "swarmmap.shared.plugins:ModelPlugin"))}
+                              Group("models", "learner.model", "swarmmap.shared.plugins:ModelPlugin"),
+                              Group("compressions", "learner.compression", "swarmmap.shared.plugins:CompressionPlugin"))}
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,6 @@ from pathlib import Path
 
 from swarmmap.shared import plugins
 from swarmmap.shared.run.config import DEFAULT_PRESET, PRESETS, ConfigError, LearnerSettings
-from swarmmap.shared.wire.compression import COMPRESSIONS
 
 # The choices, as the config's fields allow them.
 BUILTIN_RULES = ("dinno", "ramen", "sigma", "dgvi")  # the consensus experiment's rules, in its order
@@ -85,8 +84,8 @@ def add_parser(sub, text: str = "The paper's experiments (kl-sweep, regularizati
             e.add_argument("--link-success", type=float, nargs="+", default=[1.0, 0.3, 0.05],
                            help="probabilities that a message reaches a neighbour")
             e.add_argument("--exchange-every", type=int, nargs="+", default=[1, 10], help="exchange intervals (rounds)")
-            e.add_argument("--compression", nargs="+", choices=COMPRESSIONS,
-                           default=[c for c in COMPRESSIONS if c != "lowrank"],  # (fails under Adam: README)
+            e.add_argument("--compression", nargs="+", choices=plugins.names("compressions"),
+                           default=["none", "f16", "bf16", "topk", "sign", "quant"],  # (lowrank fails under Adam: README)
                            help="State encodings, each run over perfect links exchanging every round")
             e.add_argument("--compression-consensus", nargs="+", choices=rules, default=["dinno"],
                            help="consensus rules the compression runs use")

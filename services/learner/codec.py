@@ -29,7 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmmap.services.learner.transport import Delivery, Envelope, Link
-from swarmmap.shared.wire.compression import Compressor, Decompressor
+from swarmmap.shared.wire.compression import Decompressor, Encoder, Plain
 from swarmmap.shared.wire.protocol import StateBody, Tensor
 from swarmmap.shared.world.unseen import Coverage
 
@@ -39,12 +39,12 @@ log = logging.getLogger("learner")
 class StateCodec:
     """One node's States, encoded and numbered for the wire, over ``inner``."""
 
-    def __init__(self, inner: Link, node: int, compressor: Compressor | None = None, every: int = 1,
+    def __init__(self, inner: Link, node: int, compressor: Encoder | None = None, every: int = 1,
                  radius: float | None = None, position: Callable[[], tuple[float, float] | None] | None = None,
                  coverage: Coverage | None = None):
         self.inner, self.node, self.every = inner, node, every
         self.coverage = coverage
-        self.compressor = compressor if compressor is not None else Compressor("none")
+        self.compressor = compressor if compressor is not None else Plain()
         self.radius, self.position = radius, position
         self.out_of_range: dict[int, bool] = {}  # per sender: was its newest State from out of range
         self.ignored = 0  # messages from neighbours out of range
@@ -57,7 +57,7 @@ class StateCodec:
         wire = round * self.every
         where = self.position() if self.position is not None else None
         c = self.compressor
-        if c.mode == "none" and where is None and self.coverage is None:
+        if c.plain and where is None and self.coverage is None:
             self.inner.send_state(wire, params)  # the fast path: the frame the node wrote its parameters into
             return
         if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
@@ -75,7 +75,7 @@ class StateCodec:
 
     def new_state(self, n: int) -> np.ndarray:
         """The link's payload buffer where a plain State is sent as it is; else a fresh vector."""
-        if self.compressor.mode == "none" and self.position is None and self.coverage is None:
+        if self.compressor.plain and self.position is None and self.coverage is None:
             return self.inner.new_state(n)
         return np.empty(n, np.float32)
 

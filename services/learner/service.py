@@ -69,11 +69,13 @@ from swarmmap.shared.learning.networks import build_network
 from swarmmap.shared.plugins import origin
 from swarmmap.shared.run.config import RunConfig, task_robot
 from swarmmap.shared.run.fingerprint import settings_fingerprint
+from swarmmap.shared.run.sections import LearnerSettings, part_options
 from swarmmap.shared.run.slots import ComputeSlots, slots_dir
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import encode_state
-from swarmmap.shared.wire.compression import Compressor
-from swarmmap.shared.wire.protocol import CHAINED_ENCODINGS, MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap
+from swarmmap.shared.wire.compression import Encoder
+from swarmmap.shared.wire.compression import compressor as make_compressor
+from swarmmap.shared.wire.protocol import MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap
 from swarmmap.shared.world.unseen import Coverage
 
 log = logging.getLogger("learner")
@@ -135,8 +137,7 @@ class RobotLearner:
         inputs = node_inputs(s, model, self.points.copy(), self.labels.copy(), cfg.seed * 1000 + self.robot + 1, self.world.bounds)
         transport, public = None, None
         if make_link is not None:
-            compressor = Compressor(s.compression, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank,
-                                    list(inputs.layout.matrices))
+            compressor = state_compressor(s, s.compression, s.compression_options, list(inputs.layout.matrices))
             transport = self.codec = state_links(self, make_link(inputs.layout), compressor, inputs.coverage)
             transport = hostile(cfg, self.robot, transport, inputs.layout, self.metrics_pub.put)
             inputs = dataclasses.replace(inputs, new_state=transport.new_state)  # States written straight into their payloads
@@ -257,10 +258,16 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
     return final
 
 
+def state_compressor(s: LearnerSettings, name: str, options: dict, matrices: list[tuple[int, int, int]]) -> Encoder:
+    """The encoder of the compression plug-in ``name`` with the learner's knobs and its own ``options``."""
+    return make_compressor(name, s.topk_density, s.keyframe_every, s.quant_bits, s.lowrank_rank, matrices,
+                           part_options("compressions", "compression", name, options))
+
+
 def public_state(codec: StateCodec) -> np.ndarray | None:
     """What the neighbours hold of a node's State: its chain's replica where its States are chained
     (the encoding may change during a run: a slow link), else None (its own parameters)."""
-    return codec.compressor.replica if codec.compressor.mode in CHAINED_ENCODINGS else None
+    return codec.compressor.replica
 
 
 def slow_link(learner: RobotLearner) -> Callable[[], str] | None:
@@ -272,13 +279,13 @@ def slow_link(learner: RobotLearner) -> Callable[[], str] | None:
         return None
 
     def compress() -> str:
-        codec.compressor = Compressor(s.slow_link_compression, keyframe_every=s.keyframe_every, bits=s.quant_bits)
+        codec.compressor = state_compressor(s, s.slow_link_compression, {}, list(codec.compressor.knobs.matrices))
         return s.slow_link_compression + (f" ({s.quant_bits} bits a value)" if s.slow_link_compression == "quant" else "")
 
     return compress
 
 
-def state_links(learner: RobotLearner, link: Link, compressor: Compressor, coverage: Coverage | None) -> StateCodec:
+def state_links(learner: RobotLearner, link: Link, compressor: Encoder, coverage: Coverage | None) -> StateCodec:
     """A learner's links as its settings ask: faults injected where the run's ``faults`` say, States
     encoded (``learner.compression``) and numbered by training round (``learner.exchange_every``),
     and on a dynamic disk graph limited to the neighbours within ``comm_radius_m``."""
@@ -352,9 +359,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         world = bus.world(cfg.world_wait_s(), stop)
         if world is None:
             return 0 if stop.is_set() else 3
-        where = origin("consensus", s.consensus)
-        log.info("robots %s (%s transport): model %s %s on %s, consensus %s%s", robots, s.transport, s.model, s.model_shape,
-                 device, s.consensus, f" (from {where})" if where else "")
+        where, packed = origin("consensus", s.consensus), origin("compressions", s.compression)
+        log.info("robots %s (%s transport): model %s %s on %s, consensus %s%s, compression %s%s", robots, s.transport, s.model,
+                 s.model_shape, device, s.consensus, f" (from {where})" if where else "", s.compression,
+                 f" (from {packed})" if packed else "")
         try:
             for learner in learners:
                 learner.prepare(world, stop)

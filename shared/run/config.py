@@ -90,9 +90,9 @@ class RunConfig(Section):
             raise ValueError(str(exc)) from None
         if attack.models is not None and self.learner.model not in attack.models:
             raise ValueError(f"faults.attack {f.attack} ({attack.summary}): it needs learner.model {' or '.join(attack.models)}")
-        if attack.sends == "both" and self.learner.compression not in ("none", "f16", "bf16"):
+        if attack.sends == "both" and plugins.load("compressions", self.learner.compression).chained:
             raise ValueError(f"faults.attack {f.attack} sends two States a round: a compressed chain carries one "
-                             "(learner.compression none, f16 or bf16)")
+                             "(a learner.compression whose States stand alone: none, f16 or bf16)")
         return self
 
     @model_validator(mode="after")

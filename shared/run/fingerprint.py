@@ -69,8 +69,9 @@ COUNTED: dict[str, tuple[str, ...]] = {
                 "mc_samples", "unseen_weight", "unseen_prior_std", "unseen_points", "unseen_draws", "unseen_margin_m",
                 "share_coverage", "optimizer_per_round", "siren_scale", "data", "window_scans", "eval_every", "map_resolution_m",
                 "max_state_distance", "consensus", "consensus_options", "consensus_min_weight", "sigma_memory_rounds", "exchange_every",
-                "exchange_every_s", "stale_rounds", "round_wait_s", "compression", "slow_link_compression", "topk_density",
-                "quant_bits", "lowrank_rank", "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor", "sigma_max_weight"),
+                "exchange_every_s", "stale_rounds", "round_wait_s", "compression", "compression_options", "slow_link_compression",
+                "topk_density", "quant_bits", "lowrank_rank", "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor",
+                "sigma_max_weight"),
     "faults": ("link_success", "duplicate", "delay_s", "links", "seed", "per_round", "attack", "attackers"),
 }
 
@@ -88,7 +89,7 @@ def _is_section(annotation: object) -> bool:
 def settings_fingerprint(cfg: RunConfig) -> dict:
     """Every field that counts, as ``"section.field": value`` (JSON values), the checkpoint format,
     for a plan file its SHA-256 (the same path may hold another plan), and for a consensus rule,
-    a network or an attack from another package that package's name and version."""
+    a network, an attack or a compression from another package that package's name and version."""
     doc = cfg.model_dump(mode="json")
     out: dict = {"checkpoint_format": CHECKPOINT_FORMAT}
     for section, names in config_fields().items():
@@ -96,10 +97,13 @@ def settings_fingerprint(cfg: RunConfig) -> dict:
         skip = NOT_COUNTED.get(section, ())
         out |= {f"{section}.{n}".lstrip("."): values[n] for n in names if n not in skip}
     out["world.floorplan_sha256"] = plan_sha256(cfg.world.floorplan)
-    if not cfg.learner.consensus_options:  # as a run of a swarmmap before rules took options: its runs resume
-        del out["learner.consensus_options"]
+    for options in ("consensus_options", "compression_options"):
+        if not getattr(cfg.learner, options):  # as a run of a swarmmap before parts took options: its runs resume
+            del out[f"learner.{options}"]
     for group, field, name in (("consensus", "learner.consensus", cfg.learner.consensus), ("models", "learner.model", cfg.learner.model),
-                               ("attacks", "faults.attack", cfg.faults.attack)):
+                               ("attacks", "faults.attack", cfg.faults.attack),
+                               ("compressions", "learner.compression", cfg.learner.compression),
+                               ("compressions", "learner.slow_link_compression", cfg.learner.slow_link_compression)):
         if (where := plugins.origin(group, name)) is not None:  # a part from another package: its package and version
             out[f"{field}_plugin"] = where
     return out

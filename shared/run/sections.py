@@ -73,15 +73,41 @@ def consensus_fits(s: LearnerSettings) -> None:
 
 def consensus_options(name: str, rule: plugins.ConsensusPlugin, given: dict[str, Any]) -> Any:
     """The rule's options validated by its own model (None for a rule that takes none, refusing any given)."""
-    if rule.options is None:
+    return plugin_options("consensus", name, rule.options, given)
+
+
+def plugin_options(field: str, name: str, model: type | None, given: dict[str, Any]) -> Any:
+    """A plug-in's ``<field>_options`` validated by its own pydantic ``model`` (None for a part that takes
+    none, refusing any given); a ValueError naming the field and what is wrong."""
+    if model is None:
         if given:
-            raise ValueError(f"consensus_options: consensus {name} takes no options (got {', '.join(sorted(given))})")
+            raise ValueError(f"{field}_options: {field} {name} takes no options (got {', '.join(sorted(given))})")
         return None
     try:
-        return rule.options.model_validate(given)
+        return model.model_validate(given)
     except ValidationError as exc:
-        raise ValueError("consensus_options: " + "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}"
-                                                            for e in exc.errors())) from None
+        raise ValueError(f"{field}_options: " + "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}"
+                                                           for e in exc.errors())) from None
+
+
+def compression_fits(name: str, given: dict[str, Any]) -> None:
+    """Refuse a compression that cannot serve: one that fails to load, options it does not take, or
+    one whose plug-in makes no Encoder (a ValueError naming it and its package)."""
+    from swarmmap.shared.wire.compression import compressor
+
+    try:
+        compressor(name, options=part_options("compressions", "compression", name, given))
+    except plugins.PluginError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def part_options(group: str, field: str, name: str, given: dict[str, Any]) -> Any:
+    """The options of the ``group`` part called ``name`` (it loads, or a ValueError names why not)."""
+    try:
+        spec = plugins.load(group, name)
+    except plugins.PluginError as exc:
+        raise ValueError(str(exc)) from None
+    return plugin_options(field, name, spec.options, given)
 
 
 class ZenohSettings(Section):
@@ -342,15 +368,20 @@ class LearnerSettings(Section):
                                                   "exchange_every; on a clock, until the neighbour goes silent)")
     round_wait_s: float = Field(0.0, ge=0, description="poor links: after this long in a round, go on with the neighbours' "
                                                        "States that arrived (0: wait for every neighbour, as Algorithm 1)")
-    compression: Literal["none", "f16", "bf16", "topk", "sign", "quant", "lowrank"] = Field(
-        "none", description="State encoding on the wire: float32, half precision, bfloat16, or differences with error "
-                            "feedback: top-k, the sign of every value with a scale per 256, every value quantised "
-                            "to quant_bits with a step per 256, or each weight matrix as a rank-lowrank_rank product")
-    slow_link_compression: Literal["none", "f16", "bf16", "quant"] = Field(
+    compression: str = Field(
+        "none", description="State encoding on the wire, a compression plug-in (swarmmap plugins lists those installed): "
+                            "none (float32), f16 (half precision), bf16 (bfloat16), or differences with error feedback: "
+                            "topk, sign (the sign of every value with a scale per 256), quant (every value quantised to "
+                            "quant_bits with a step per 256), lowrank (each weight matrix as a rank-lowrank_rank product), "
+                            "or one from another package")
+    compression_options: dict[str, Any] = Field(
+        default_factory=dict, description="the compression's own knobs, as its plug-in defines them; the built-in "
+                                          "compressions take none (their knobs are the fields below)")
+    slow_link_compression: str = Field(
         "none", description="with compression none over Zenoh: when a learner's rounds wait mostly for its neighbours' "
                              "States (a median wait twice its training, at least 0.25 s, over 20 rounds), its links set "
-                             "the pace and its States go out with this encoding from then on, said in its log (none: never; "
-                             "quant suits a radio link; a switch depends on timing, so two such runs may differ)")
+                             "the pace and its States go out with this compression from then on, said in its log (none: "
+                             "never; quant suits a radio link; a switch depends on timing, so two such runs may differ)")
     topk_density: float = Field(0.01, gt=0, le=1, description="topk: share of the values each State carries")
     quant_bits: int = Field(3, ge=2, le=8, description="quant: bits a value before Huffman coding (2-8)")
     lowrank_rank: int = Field(1, ge=1, le=64, description="lowrank: rank of each weight matrix's update (PowerGossip; "
@@ -379,6 +410,11 @@ class LearnerSettings(Section):
     def _installed_model(cls, value: str) -> str:
         return installed("models", value)
 
+    @field_validator("compression", "slow_link_compression")
+    @classmethod
+    def _installed_compression(cls, value: str) -> str:
+        return installed("compressions", value)
+
     @model_validator(mode="after")
     def _shape(self) -> LearnerSettings:
         if self.algorithm == "centralized" and self.transport != "inproc":
@@ -390,6 +426,7 @@ class LearnerSettings(Section):
         if any(w < 1 for w in self.model_shape):
             raise ValueError("model_shape widths must be positive")
         consensus_fits(self)
+        compression_fits(self.compression, self.compression_options)
         if self.unseen_weight > 0 and self.model != "bnn":
             raise ValueError("unseen_weight (the noise-contrastive prior on unseen space) shapes a Bayesian network's "
                              "weight draws: it needs model bnn")

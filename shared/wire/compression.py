@@ -51,14 +51,17 @@ from __future__ import annotations
 import logging
 import math
 import zlib
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from swarmmap.shared import plugins
+from swarmmap.shared.plugins import CompressionPlugin
 from swarmmap.shared.wire.protocol import SCALE_CHUNK, State, StateBody, Tensor
 
 log = logging.getLogger("compression")
 
-COMPRESSIONS = ("none", "f16", "bf16", "topk", "sign", "quant", "lowrank")
 KEYFRAME_BITS = 16  # a quant key frame: the vector itself, to within half of 1/32767 of each run's largest value
 F16_MAX = float(np.finfo(np.float16).max)
 
@@ -75,71 +78,121 @@ def from_bf16_bits(bits: np.ndarray) -> np.ndarray:
     return (bits.astype(np.uint32) << np.uint32(16)).view(np.float32)
 
 
-class Compressor:
-    """The sender's side: turns each new State's vector into the body of a :class:`State`."""
+@dataclass(frozen=True)
+class Knobs:
+    """What a compression is made with: the learner's knobs (``learner.topk_density``,
+    ``keyframe_every``, ``quant_bits``, ``lowrank_rank``, ``compression_options`` validated by the
+    plug-in's own model) and the network's weight matrices, (offset, rows, cols) each, row-major."""
 
-    def __init__(self, mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 3, rank: int = 1,
-                 matrices: list[tuple[int, int, int]] | None = None):
-        """``matrices`` (lowrank): (offset, rows, cols) of each weight matrix in the vector, row-major;
-        those a rank-``rank`` product would not shrink go as plain differences."""
-        if mode not in COMPRESSIONS:
-            raise ValueError(f"unknown compression {mode!r}; allowed: {', '.join(COMPRESSIONS)}")
-        if not 0 < density <= 1:
-            raise ValueError(f"topk density must lie in (0, 1], got {density}")
-        if not 2 <= bits <= 16:
-            raise ValueError(f"quant bits must lie in 2..16, got {bits}")
-        if rank < 1:
-            raise ValueError(f"lowrank rank must be at least 1, got {rank}")
-        self.mode, self.density, self.keyframe_every, self.bits = mode, density, max(1, keyframe_every), bits
-        self.blocks = [(o, r, c, rank) for o, r, c in sorted(matrices or []) if rank * (r + c) < r * c]
-        self.q: dict[int, np.ndarray] = {}  # lowrank: each block's Q, the next power iteration's start
-        self.rng = np.random.default_rng(0)
-        self.replica: np.ndarray | None = None
-        self.seq = -1
-        self.since_keyframe = 0
+    density: float = 0.01
+    keyframe_every: int = 100
+    bits: int = 3
+    rank: int = 1
+    matrices: tuple[tuple[int, int, int], ...] = ()
+    options: Any = None
+
+    def __post_init__(self) -> None:
+        if not 0 < self.density <= 1:
+            raise ValueError(f"topk density must lie in (0, 1], got {self.density}")
+        if not 2 <= self.bits <= 16:
+            raise ValueError(f"quant bits must lie in 2..16, got {self.bits}")
+        if self.rank < 1:
+            raise ValueError(f"lowrank rank must be at least 1, got {self.rank}")
+
+
+class Encoder:
+    """The sender's side of a compression: turns each new State's vector into the body of a
+    :class:`State` in one of the wire's encodings (:data:`~swarmmap.shared.wire.protocol.STATE_ENCODINGS`),
+    so that every receiver rebuilds it without knowing the compression. ``seq``: the number of the
+    newest State of its chain (-1 for States that stand alone); ``replica``: the vector the
+    receivers hold (None where each State stands alone); ``plain``: its bodies are the float32
+    vector itself (the link may send the node's buffer as it is); ``knobs``: what it was made with."""
+
+    plain = False
+    seq = -1
+    replica: np.ndarray | None = None
+
+    def __init__(self, knobs: Knobs | None = None):
+        self.knobs = knobs if knobs is not None else Knobs()
+
+    def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
+        """The body of a State carrying ``params``; ``keyframe`` asks for one that stands alone (a State
+        sent again for an older round)."""
+        raise NotImplementedError
+
+
+class Plain(Encoder):
+    """``none``: the float32 vector."""
+
+    plain = True
+
+    def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
+        return StateBody(Tensor.of(np.ascontiguousarray(params, dtype=np.float32), "<f4"))
+
+
+class BFloat(Encoder):
+    """``bf16``: the vector rounded to bfloat16."""
+
+    def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
+        return StateBody(Tensor.of(to_bf16_bits(params), "<u2"), "bf16")
+
+
+class Half(Encoder):
+    """``f16``: the vector rounded to half precision; one beyond its range goes as float32 (said once)."""
+
+    def __init__(self, knobs: Knobs | None = None):
+        super().__init__(knobs)
         self.warned = False
 
     def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
-        """The body of a State carrying ``params`` (its encoding and what that needs);
-        ``keyframe`` forces a whole vector (a State sent again for an older round)."""
         vec = np.ascontiguousarray(params, dtype=np.float32)
-        if self.mode == "none":
-            return StateBody(Tensor.of(vec, "<f4"))
-        if self.mode == "bf16":
-            return StateBody(Tensor.of(to_bf16_bits(vec), "<u2"), "bf16")
-        if self.mode == "f16":
-            peak = float(np.abs(vec).max()) if vec.size else 0.0
-            if peak <= F16_MAX:
-                return StateBody(Tensor.of(vec.astype(np.float16), "<f2"), "f16")
-            if not self.warned:
-                self.warned = True
-                log.warning("a State holds %.3g, beyond half precision (%.0f): sent as float32 (further ones too, "
-                            "without a word)", peak, F16_MAX)
-            return StateBody(Tensor.of(vec, "<f4"))
+        peak = float(np.abs(vec).max()) if vec.size else 0.0
+        if peak <= F16_MAX:
+            return StateBody(Tensor.of(vec.astype(np.float16), "<f2"), "f16")
+        if not self.warned:
+            self.warned = True
+            log.warning("a State holds %.3g, beyond half precision (%.0f): sent as float32 (further ones too, "
+                        "without a word)", peak, F16_MAX)
+        return StateBody(Tensor.of(vec, "<f4"))
+
+
+class Chain(Encoder):
+    """A chain of differences with error feedback: each State adds to the one before it, against
+    ``replica`` (what the receivers hold); every ``keyframe_every``-th State, one asked for, the
+    first and one after the vector's size changed is a key frame. A subclass says what an update
+    carries (:meth:`update`) and may make its key frames its own way (:meth:`keyframe`)."""
+
+    def __init__(self, knobs: Knobs):
+        super().__init__(knobs)
+        self.keyframe_every = max(1, knobs.keyframe_every)
+        self.replica: np.ndarray | None = None
+        self.seq = -1
+        self.since_keyframe = 0
+
+    def body(self, params: np.ndarray, keyframe: bool = False) -> StateBody:
+        vec = np.ascontiguousarray(params, dtype=np.float32)
         self.seq += 1
         if keyframe or self.replica is None or self.replica.shape != vec.shape or self.since_keyframe + 1 >= self.keyframe_every:
             self.since_keyframe = 0
-            if self.mode == "quant":
-                self.replica = np.zeros_like(vec)
-                return self._quant(vec, KEYFRAME_BITS, None)
-            self.replica = vec.copy()
-            return StateBody(Tensor.of(vec, "<f4"), seq=self.seq)
+            return self.keyframe(vec)
         self.since_keyframe += 1
-        diff = vec - self.replica
-        if self.mode == "quant":
-            return self._quant(diff, self.bits, self.seq - 1)
-        if self.mode == "lowrank":
-            return self._lowrank(diff)
-        if self.mode == "sign":
-            runs = np.abs(_runs(diff))
-            counts = np.full(len(runs), SCALE_CHUNK, np.float32)
-            counts[-1] = diff.size - (len(runs) - 1) * SCALE_CHUNK
-            scales = (runs.sum(1) / counts).astype(np.float32)
-            up = diff >= 0
-            self.replica += sign_steps(up, scales)
-            return StateBody(Tensor.of(np.packbits(up), "|u1"), "sign", size=int(diff.size), seq=self.seq,
-                             base=self.seq - 1, scales=Tensor.of(scales, "<f4"))
-        k = min(diff.size, max(1, math.ceil(self.density * diff.size)))
+        return self.update(vec - self.replica)
+
+    def keyframe(self, vec: np.ndarray) -> StateBody:
+        """A State that stands alone (the float32 vector numbered ``seq``); the replica starts again."""
+        self.replica = vec.copy()
+        return StateBody(Tensor.of(vec, "<f4"), seq=self.seq)
+
+    def update(self, diff: np.ndarray) -> StateBody:
+        """A State adding to the previous one what it carries of ``diff``; the replica takes it."""
+        raise NotImplementedError
+
+
+class TopK(Chain):
+    """``topk``: the ``density`` x n largest differences, at their indices."""
+
+    def update(self, diff: np.ndarray) -> StateBody:
+        k = min(diff.size, max(1, math.ceil(self.knobs.density * diff.size)))
         idx = np.argpartition(np.abs(diff), diff.size - k)[diff.size - k :] if k < diff.size else np.arange(diff.size)
         idx = np.sort(idx).astype(np.uint32)
         values = diff[idx]
@@ -147,13 +200,51 @@ class Compressor:
         return StateBody(Tensor.of(values, "<f4"), "topk", size=int(diff.size), indices=Tensor.of(idx, "<u4"),
                          seq=self.seq, base=self.seq - 1)
 
+
+class Sign(Chain):
+    """``sign``: every difference's sign times its run's mean absolute difference."""
+
+    def update(self, diff: np.ndarray) -> StateBody:
+        runs = np.abs(_runs(diff))
+        counts = np.full(len(runs), SCALE_CHUNK, np.float32)
+        counts[-1] = diff.size - (len(runs) - 1) * SCALE_CHUNK
+        scales = (runs.sum(1) / counts).astype(np.float32)
+        up = diff >= 0
+        self.replica += sign_steps(up, scales)
+        return StateBody(Tensor.of(np.packbits(up), "|u1"), "sign", size=int(diff.size), seq=self.seq,
+                         base=self.seq - 1, scales=Tensor.of(scales, "<f4"))
+
+
+class Quant(Chain):
+    """``quant``: every difference quantised to ``bits`` bits, the codes Huffman-coded; key frames
+    are quant States of the vector itself at KEYFRAME_BITS."""
+
+    def keyframe(self, vec: np.ndarray) -> StateBody:
+        self.replica = np.zeros_like(vec)
+        return self._quant(vec, KEYFRAME_BITS, None)
+
+    def update(self, diff: np.ndarray) -> StateBody:
+        return self._quant(diff, self.knobs.bits, self.seq - 1)
+
     def _quant(self, diff: np.ndarray, bits: int, base: int | None) -> StateBody:
         codes, steps = quantise(diff, bits)
         self.replica += dequantise(codes, steps, bits)
         return StateBody(Tensor.of(deflate_codes(codes), "|u1"), "quant", size=int(diff.size), seq=self.seq, base=base,
                          scales=Tensor.of(steps, "<f4"), bits=bits)
 
-    def _lowrank(self, diff: np.ndarray) -> StateBody:
+
+class LowRank(Chain):
+    """``lowrank``: each weight matrix's difference as P Q^T of rank ``rank`` (two power iterations
+    warm-started from the last State's Q); those a product would not shrink, and biases, as they are."""
+
+    def __init__(self, knobs: Knobs):
+        super().__init__(knobs)
+        rank = knobs.rank
+        self.blocks = [(o, r, c, rank) for o, r, c in sorted(knobs.matrices) if rank * (r + c) < r * c]
+        self.q: dict[int, np.ndarray] = {}  # each block's Q, the next power iteration's start
+        self.rng = np.random.default_rng(0)
+
+    def update(self, diff: np.ndarray) -> StateBody:
         parts = []
         blocks = [b for b in self.blocks if b[0] + b[1] * b[2] <= diff.size]
         for offset, rows, cols, rank in blocks:
@@ -171,6 +262,36 @@ class Compressor:
         self.replica += lowrank_update(values, blocks, diff.size)
         return StateBody(Tensor.of(values, "<f4"), "lowrank", size=int(diff.size), seq=self.seq, base=self.seq - 1,
                          blocks=[list(b) for b in blocks])
+
+
+# swarmmap's compressions, registered in its pyproject.toml (entry points swarmmap.compressions)
+NONE = CompressionPlugin(Plain, "float32, 4 bytes a value")
+F16 = CompressionPlugin(Half, "half precision, 2 bytes a value (float32 beyond its range)")
+BF16 = CompressionPlugin(BFloat, "bfloat16, 2 bytes a value")
+TOPK = CompressionPlugin(TopK, "the topk_density largest differences, with error feedback", chained=True)
+SIGN = CompressionPlugin(Sign, "each difference's sign, a scale per 256, with error feedback (about 28x fewer bytes)",
+                         chained=True)
+QUANT = CompressionPlugin(Quant, "each difference in quant_bits bits, a step per 256, Huffman-coded, with error feedback",
+                          chained=True)
+LOWRANK = CompressionPlugin(LowRank, "each weight matrix's difference as a rank-lowrank_rank product (PowerGossip), "
+                                     "with error feedback", chained=True)
+
+
+def compressor(mode: str, density: float = 0.01, keyframe_every: int = 100, bits: int = 3, rank: int = 1,
+               matrices: list[tuple[int, int, int]] | None = None, options: Any = None) -> Encoder:
+    """The encoder of the compression plug-in called ``mode`` (``learner.compression``), made with these
+    knobs; a ValueError for a knob out of range, a PluginError for a compression that is not installed,
+    fails to import or makes no Encoder."""
+    knobs = Knobs(density, keyframe_every, bits, rank, tuple(tuple(m) for m in matrices or ()), options)
+    spec = plugins.load("compressions", mode)
+    try:
+        encoder = spec.make(knobs)
+    except Exception as exc:  # whatever a foreign part raises is that part's fault
+        raise plugins.broken_contract(mode, "compressions", f"make raised {type(exc).__name__}: {exc}") from None
+    if not isinstance(encoder, Encoder):
+        raise plugins.broken_contract(mode, "compressions", f"it made a {type(encoder).__name__}, not an Encoder "
+                                                            "(swarmmap.shared.wire.compression)")
+    return encoder
 
 
 def lowrank_update(values: np.ndarray, blocks, size: int) -> np.ndarray:

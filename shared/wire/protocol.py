@@ -382,7 +382,7 @@ class State(Message):
 @dataclass(frozen=True)
 class StateBody:
     """What a State says apart from who sent it for which round: its encoded vector and what may
-    come with it (see :class:`State`). A :class:`~swarmmap.shared.wire.compression.Compressor` makes
+    come with it (see :class:`State`). A compression's :class:`~swarmmap.shared.wire.compression.Encoder` makes
     one, a learner's codec adds its position or coverage, a link stamps it (:meth:`state`)."""
 
     params: Tensor

@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from swarmmap.shared.learning.networks import load_model
 from swarmmap.shared.world.datasets import read_log
 from tests.conftest import KIT_DATA, REPO, clean_env
 
@@ -52,21 +53,24 @@ def test_plugins_lists_each_part_with_its_package_and_refuses_the_broken_ones(ve
     assert "swarmmap-example-plugins 1.2.0" in rows["damped"] and "every pull scaled" in rows["damped"]
     assert "swarmmap-example-plugins 1.2.0" in rows["scans-csv"] and "*.scans.csv" in rows["scans-csv"]
     assert "swarmmap-example-plugins 1.2.0" in rows["heartbeat"] and "hears every learner's Metrics" in rows["heartbeat"]
-    assert rows["sigma"].split()[1:3] == ["swarmmap", "0.1.0"]
+    assert "swarmmap-example-plugins 1.2.0" in rows["randk"] and "random share" in rows["randk"]
+    assert rows["sigma"].split()[1:3] == ["swarmmap", "0.1.0"] and rows["quant"].split()[1:3] == ["swarmmap", "0.1.0"]
     assert "REFUSED" in rows["crashes"] and "failed to import: ImportError" in rows["crashes"]
     assert "breaks its contract" in rows["not-a-rule"] and "swarmmap-broken-plugins 0.0.1" in rows["not-a-rule"]
     assert proc.returncode == 2 and "2 plug-in(s) refused" in proc.stderr
 
 
-@pytest.mark.parametrize("rule, why", [("crashes", "failed to import: ImportError: this rule needs a library"),
-                                       ("not-a-rule", "breaks its contract: swarmmap_broken_plugins:NOT_A_RULE is a dict")])
-def test_a_run_naming_a_broken_plugin_is_refused_by_name_in_seconds(venv, tmp_path, rule, why):
+@pytest.mark.parametrize("field, group, rule, why", [
+    ("consensus", "consensus", "crashes", "failed to import: ImportError: this rule needs a library"),
+    ("consensus", "consensus", "not-a-rule", "breaks its contract: swarmmap_broken_plugins:NOT_A_RULE is a dict"),
+    ("compression", "compressions", "no-encoder", "breaks its contract: it made a function, not an Encoder")])
+def test_a_run_naming_a_broken_plugin_is_refused_by_name_in_seconds(venv, tmp_path, field, group, rule, why):
     start = time.monotonic()
-    proc = swarmmap(venv, "up", "--preset", "smoke", "--set", f"learner.consensus={rule}", "--run-dir", str(tmp_path / "run"),
+    proc = swarmmap(venv, "up", "--preset", "smoke", "--set", f"learner.{field}={rule}", "--run-dir", str(tmp_path / "run"),
                     timeout=120)
     took = time.monotonic() - start
     assert proc.returncode == 2, proc.stderr[-2000:]
-    assert f"consensus plug-in {rule!r}" in proc.stderr and "swarmmap-broken-plugins 0.0.1" in proc.stderr and why in proc.stderr
+    assert f"{group} plug-in {rule!r}" in proc.stderr and "swarmmap-broken-plugins 0.0.1" in proc.stderr and why in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "run").exists()
     assert took < 20, f"refused after {took:.1f} s"
 
@@ -102,13 +106,20 @@ def test_a_smoke_run_trains_with_the_plugins_rule_on_the_plugins_log(venv, tmp_p
 def test_a_smoke_run_on_a_plan_trains_with_the_plugins_rule_over_zenoh(venv, tmp_path):
     run = tmp_path / "run"
     proc = swarmmap(venv, "up", "--preset", "smoke", "--rounds", "20", "--no-observer", "--set", "learner.consensus=damped",
+                    "--set", "learner.compression=randk", "--set", 'learner.compression_options={"share": 0.3}',
                     "--run-dir", str(run))
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads((run / "summary.json").read_text())
     assert summary["ok"] and all(v["finished"] for v in summary["learners"].values())
     cfg = (run / "config.yaml").read_text()
-    assert "transport: zenoh" in cfg and "consensus: damped" in cfg
-    assert "consensus damped (from swarmmap-example-plugins 1.2.0)" in (run / "logs" / "learner-1.log").read_text()
+    assert "transport: zenoh" in cfg and "consensus: damped" in cfg and "compression: randk" in cfg
+    log = (run / "logs" / "learner-1.log").read_text()
+    assert "consensus damped (from swarmmap-example-plugins 1.2.0)" in log
+    assert "compression randk (from swarmmap-example-plugins 1.2.0)" in log
+    # the other package's States went as the wire's topk encoding (8 bytes a value kept, 30% of them), not float32
+    values = sum(p.numel() for p in load_model(run / "models" / "robot-0.pt").parameters())
+    for robot, learner in summary["learners"].items():
+        assert learner["bytes_sent"] < 0.75 * 21 * 4 * values, (robot, learner["bytes_sent"], values)
     # up started the other package's service with the run's own: its certificate, its session, what it heard
     assert (run / "secrets" / f"heartbeat-0@{summary['run_id']}" / "cert.pem").exists()
     beat = (run / "logs" / "heartbeat-0.log").read_text()

@@ -16,7 +16,7 @@ from swarmmap.services.learner.memory_link import MemoryLink
 from swarmmap.services.learner.pace import Pace
 from swarmmap.services.learner.transport import MemoryHub
 from swarmmap.shared.run.config import FaultSettings
-from swarmmap.shared.wire.compression import Compressor
+from swarmmap.shared.wire.compression import compressor
 
 from .test_algorithm1 import COMPLETE3, in_threads, mixing_update, reference, run_algorithm1
 
@@ -37,10 +37,10 @@ def run_wire(graph, rounds, init, *, compression="none", density=0.01, every=1, 
         inner.send_state = lambda r, p: (wire_rounds[i].append(r), spy_send(r, p))
         inner.send_body = lambda r, b: (wire_rounds[i].append(r), spy_body(r, b))
         link = FaultyTransport(inner, i, faults) if faults is not None else inner
-        codec = StateCodec(link, i, Compressor(compression, density, keyframe_every=10), every)
+        codec = StateCodec(link, i, compressor(compression, density, keyframe_every=10), every)
         pace = None
         if paces is not None:
-            pace = paces[i] = Pace(i, lambda: (setattr(codec, "compressor", Compressor("quant", keyframe_every=10)), "quant")[1])
+            pace = paces[i] = Pace(i, lambda: (setattr(codec, "compressor", compressor("quant", keyframe_every=10)), "quant")[1])
         return run_algorithm1(i, graph[i], rounds, init[i], update(i), codec, stats=stats[i], resend_after=0.2,
                               linger=0.5, round_wait=round_wait, peer_timeout=20, pace=pace)
 

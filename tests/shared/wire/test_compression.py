@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from swarmmap.shared.wire.codec import decode, encode
-from swarmmap.shared.wire.compression import Compressor, Decompressor, deflate_codes, from_bf16_bits, inflate_codes, quantise, to_bf16_bits
+from swarmmap.shared.wire.compression import Decompressor, compressor, deflate_codes, from_bf16_bits, inflate_codes, quantise, to_bf16_bits
 from swarmmap.shared.wire.protocol import ProtocolError, State, StateBody, Tensor
 
 RUN = "run-c"
@@ -34,7 +34,7 @@ def vectors(n: int = 10_000, steps: int = 30, seed: int = 0):
 def test_half_precisions_round_trip_within_their_precision_at_half_the_bytes(mode, tol, ratio):
     v = next(vectors())
     plain = len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
-    msg, size = wire(Compressor(mode).body(v))
+    msg, size = wire(compressor(mode).body(v))
     back = Decompressor().vector(msg)
     assert back.dtype == np.float32 and back.shape == v.shape
     np.testing.assert_allclose(back, v, rtol=tol, atol=1e-6)
@@ -49,7 +49,7 @@ def test_bf16_rounds_to_nearest_even():
 
 def test_f16_sends_float32_when_values_exceed_half_precision(caplog):
     v = np.array([1.0, 1e6], np.float32)
-    fields = Compressor("f16").body(v)
+    fields = compressor("f16").body(v)
     assert fields.encoding == "f32" and "beyond half precision" in caplog.text
     assert Decompressor().vector(wire(fields)[0]).tolist() == [1.0, 1e6]
 
@@ -59,7 +59,7 @@ MATRICES = [(0, 50, 80), (4000, 100, 40), (8000, 40, 45)]  # three weight matric
 
 @pytest.mark.parametrize("mode", ["topk", "sign", "quant", "lowrank"])
 def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mode):
-    c, d = Compressor(mode, density=0.02, keyframe_every=1000, rank=2, matrices=MATRICES), Decompressor()
+    c, d = compressor(mode, density=0.02, keyframe_every=1000, rank=2, matrices=MATRICES), Decompressor()
     sent = 0
     for v in vectors():
         back = d.vector(wire(c.body(v))[0])
@@ -82,7 +82,7 @@ def test_receivers_hold_exactly_the_senders_replica_and_the_error_feeds_back(mod
 
 @pytest.mark.parametrize("mode, density, ratio", [("topk", 0.04, 10), ("sign", 0.01, 20), ("quant", 0, 10)])
 def test_chained_modes_send_a_tenth_of_the_bytes_or_less(mode, density, ratio):
-    c = Compressor(mode, density=density or 0.01, keyframe_every=100, bits=3)
+    c = compressor(mode, density=density or 0.01, keyframe_every=100, bits=3)
     plain = compressed = 0
     for v in vectors(steps=100):
         plain += len(encode(State(run=RUN, sender=1, round=0, params=Tensor.of(v))))
@@ -96,7 +96,7 @@ def test_lowrank_carries_low_rank_drift_whole_at_about_a_tenth_of_the_bytes():
     rounding of the vector."""
     rng = np.random.default_rng(3)
     v = rng.standard_normal(10_000).astype(np.float32)
-    c, d = Compressor("lowrank", keyframe_every=100, rank=2, matrices=MATRICES), Decompressor()
+    c, d = compressor("lowrank", keyframe_every=100, rank=2, matrices=MATRICES), Decompressor()
     plain = compressed = 0
     for step in range(100):
         for offset, rows, cols in MATRICES:
@@ -133,7 +133,7 @@ def test_hostile_lowrank_states_are_refused(blocks, why):
 
 
 def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
-    c, d = Compressor("topk", density=0.05, keyframe_every=5), Decompressor()
+    c, d = compressor("topk", density=0.05, keyframe_every=5), Decompressor()
     states = [wire(c.body(v))[0] for v in vectors(steps=12)]
     assert [s.encoding for s in states[:6]] == ["f32", "topk", "topk", "topk", "topk", "f32"]
     assert d.vector(states[0]) is not None and d.vector(states[1]) is not None
@@ -145,7 +145,7 @@ def test_a_receiver_that_missed_an_update_waits_for_the_next_key_frame():
 
 
 def test_a_key_frame_on_demand_starts_the_chain_again():
-    c, d = Compressor("topk", density=0.05, keyframe_every=100), Decompressor()
+    c, d = compressor("topk", density=0.05, keyframe_every=100), Decompressor()
     vs = list(vectors(steps=4))
     for v in vs[:3]:
         d.vector(wire(c.body(v))[0])
@@ -165,7 +165,7 @@ def test_quant_codes_pack_and_come_back_within_half_a_step(bits):
     codes, steps = quantise(v, bits)
     assert codes.max() <= 2 ** bits - 2 and steps.shape == (4,) and steps[3] == 0
     np.testing.assert_array_equal(inflate_codes(deflate_codes(codes), v.size, bits), codes)
-    c, d = Compressor("quant", keyframe_every=100, bits=bits), Decompressor()
+    c, d = compressor("quant", keyframe_every=100, bits=bits), Decompressor()
     d.vector(wire(c.body(np.zeros_like(v)))[0])  # the key frame
     back = d.vector(wire(c.body(v))[0])
     np.testing.assert_array_equal(back, c.replica)
@@ -174,7 +174,7 @@ def test_quant_codes_pack_and_come_back_within_half_a_step(bits):
 
 
 def test_a_quant_key_frame_starts_anywhere_and_a_missed_update_waits_for_the_next():
-    c = Compressor("quant", keyframe_every=4, bits=3)
+    c = compressor("quant", keyframe_every=4, bits=3)
     vs = list(vectors(steps=9))
     states = [wire(c.body(v))[0] for v in vs]
     assert [s.base for s in states[:5]] == [None, 0, 1, 2, None] and states[0].bits == 16 and states[1].bits == 3
@@ -212,7 +212,7 @@ def test_hostile_topk_states_are_refused(change, why):
     (lambda f: f.update(scales=tensor(np.array([np.nan], np.float32))), "non-finite"),
 ])
 def test_hostile_quant_states_are_refused(change, why):
-    fields = Compressor("quant", bits=3).body(np.ones(10, np.float32))
+    fields = compressor("quant", bits=3).body(np.ones(10, np.float32))
     doc = fields.state(RUN, 1, 0).model_dump(mode="python", exclude_none=True)
     change(doc)
     import msgpack
@@ -229,7 +229,7 @@ def test_hostile_quant_states_are_refused(change, why):
     (deflate_codes(np.full(10, 8, np.uint8)), "beyond 3 bits"),
 ])
 def test_a_quant_state_whose_codes_do_not_inflate_to_its_size_is_refused_by_the_receiver(stream, why):
-    c, d = Compressor("quant", bits=3), Decompressor()
+    c, d = compressor("quant", bits=3), Decompressor()
     d.vector(wire(c.body(np.ones(10, np.float32)))[0])
     good = c.body(np.full(10, 2, np.float32))
     bad = wire(dataclasses.replace(good, params=Tensor.of(stream, "|u1")))[0]

@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from swarmmap.shared.wire.codec import decode, encode, encode_state
-from swarmmap.shared.wire.compression import Compressor
+from swarmmap.shared.wire.compression import compressor
 from swarmmap.shared.wire.protocol import (
     MESSAGE_TYPES,
     Metrics,
@@ -34,7 +34,7 @@ FUZZ = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCh
 def valid_messages() -> list[bytes]:
     """A valid payload of every kind (a State plain and compressed)."""
     v = np.linspace(-1, 1, 64, dtype=np.float32)
-    quant = Compressor("quant", bits=4)
+    quant = compressor("quant", bits=4)
     quant.body(v)  # (a key frame first: the next is a quantised difference)
     return [
         encode_state(RUN, 2, 7, v),
