@@ -15,14 +15,14 @@
 # it refuses a run directory holding a finished run, or one that did not finish unless
 # SWARMMAP_UP__RESUME=true resumes it (the same settings only), writes config.yaml, makes the
 # run's CA (its key in that process's memory only), forgets the robot claims of an earlier `up`,
-# writes its verdict to $SWARMMAP_ROBOT_CLAIMS/start, then signs each service's certificate until
-# the run is over. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set) reads that
+# writes its verdict to $SWARMMAP_START/start (a folder the services mount read-only; without
+# SWARMMAP_START, $SWARMMAP_ROBOT_CLAIMS), then signs each service's certificate until the run is over. Every other service of a compose run (SWARMMAP_ROBOT_CLAIMS set) reads that
 # verdict first and stops, naming it, unless it is `ok` (compose v1 starts the others even when
 # the start container has exited); it then makes its own key in its own file system and asks the
 # signer for the certificate of the identity it serves (zenoh.signer).
 set -eu
 run_dir=${SWARMMAP_RUN_DIR:-}
-shared=${SWARMMAP_ROBOT_CLAIMS:-}
+shared=${SWARMMAP_START:-${SWARMMAP_ROBOT_CLAIMS:-}}  # the start's verdict and the services' lock (read-only to them)
 
 adopt() {  # adopt DIR OWNER: give DIR to OWNER when the engine made it for a bind mount
     if [ -d "$1" ] && [ "$(stat -c %u:%g "$1")" = 0:0 ] && [ -z "$(ls -A "$1")" ]; then chown "$2" "$1"; fi
@@ -57,9 +57,10 @@ elif [ -n "$shared" ]; then
             echo "this run did not start (${shared}/start): ${verdict:-the start container has not started it}" >&2
             exit 2
         fi
-        # A shared lock held for as long as the service runs: the start container ends once none is held.
-        if [ -w "$shared" ]; then
-            exec 9>>"$shared/running"
+        # A shared lock held for as long as the service runs: the start container ends once none is
+        # held (the start made the file; reading it is enough to lock it).
+        if [ -r "$shared/running" ]; then
+            exec 9<"$shared/running"
             flock -s 9
         fi
         ;;

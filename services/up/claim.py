@@ -6,10 +6,12 @@ session): from the same environment as every service, it checks the run director
 finished run: refused; one that did not finish: resumed with ``SWARMMAP_UP__RESUME=true`` when its
 settings are the same, refused otherwise), writes the run's ``config.yaml``, makes the run's CA (its key in
 this process's memory only: :class:`~swarmmap.shared.wire.secrets.Signer`), forgets the claims of
-the containers of an earlier ``up``, and leaves its verdict in ``FOLDER/start`` (``ok``, or
-why not), which every other container of the run reads before it starts its service. Then it
-signs each service's certificate (each container makes its own key and asks for the identity
-it claimed, ``zenoh.signer``) until the run is over.
+the containers of an earlier ``up``, and leaves its verdict in ``START/start`` (``ok``, or why
+not; START is ``SWARMMAP_START``, a folder the services mount read-only, else the claims folder),
+which every other container of the run reads before it starts its service. Then it signs each
+service's certificate (each container makes its own key and asks for the identity it claimed,
+``zenoh.signer``) until the run is over: only the identities of the services compose.yaml runs
+(mounted at COMPOSE_FILE), each for one key.
 """
 
 from __future__ import annotations
@@ -22,33 +24,46 @@ import threading
 import time
 from pathlib import Path
 
+import yaml
+
 from swarmmap.shared.run.atomic import atomic_write_text
 from swarmmap.shared.run.config import ConfigError, RunConfig, resolve
 from swarmmap.shared.run.runtime import setup_logging, shutdown_event
 from swarmmap.shared.wire.claims import CLAIMS_ENV, forget_claims
 from swarmmap.shared.wire.secrets import Signer, router_names
-from swarmmap.shared.wire.services import identities
+from swarmmap.shared.wire.services import identities, kinds
 
+START_ENV = "SWARMMAP_START"  # the folder of the start's verdict and the services' lock (compose: read-only to them)
+COMPOSE_FILE = Path("/etc/swarmmap/compose.yaml")  # where compose.yaml mounts itself into the start container
 SIGNER_LINGER_S = 10.0  # past the recorder's linger: by then it has left, and compose's `up` ends with the signer at the latest
 
 log = logging.getLogger("claim")
 
 
-def start(environ: dict[str, str] | None = None, serve: bool = False, stop: threading.Event | None = None) -> int:
+def start(environ: dict[str, str] | None = None, serve: bool = False, stop: threading.Event | None = None,
+          compose_file: Path = COMPOSE_FILE) -> int:
     """Compose's first step of a run (see the module's docstring); returns the exit status and
     leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start. With
     ``zenoh.signer`` set, the run's signer is made before the verdict (so that no service sees
-    an earlier run's CA) and, with ``serve``, signs the services' requests until the run is over."""
+    an earlier run's CA) and, with ``serve``, signs the services' requests until the run is over
+    (those of the services ``compose_file`` runs, :func:`compose_identities`)."""
     environ = os.environ if environ is None else environ
     folder = Path(environ[CLAIMS_ENV]) if environ.get(CLAIMS_ENV) else None
+    verdicts = Path(environ[START_ENV]) if environ.get(START_ENV) else folder
     signer = None
     try:
         cfg = begin(environ)
         if cfg.zenoh.signer is not None and not cfg.zenoh.insecure:
-            signer = Signer(cfg.zenoh.signer, cfg.run_id, identities(cfg.robots), router_names(cfg.zenoh.connect, cfg.router.hosts))
-            log.info("signer of run %s in %s: its CA key is held in this process's memory only", cfg.run_id, cfg.zenoh.signer)
+            names = compose_identities(cfg.robots, compose_file)
+            signer = Signer(cfg.zenoh.signer, cfg.run_id, names, router_names(cfg.zenoh.connect, cfg.router.hosts),
+                            cfg.zenoh.signer_requests)
+            log.info("signer of run %s in %s: its CA key is held in this process's memory only; it signs %s, each once",
+                     cfg.run_id, cfg.zenoh.signer, ", ".join(names))
         if folder is not None:
             forget_claims(folder)
+        if verdicts is not None:
+            verdicts.mkdir(parents=True, exist_ok=True)
+            (verdicts / "running").touch()  # the services' lock (they may not make it: the folder is read-only to them)
         verdict = "ok"
     except ConfigError as exc:
         print(exc.message, file=sys.stderr)
@@ -57,13 +72,25 @@ def start(environ: dict[str, str] | None = None, serve: bool = False, stop: thre
         hint = " (claims of another user: `docker compose down --volumes` clears them)" if folder and str(folder) in str(exc) else ""
         verdict = f"the run cannot start: {exc}{hint}"
         print(verdict, file=sys.stderr)
-    if folder is not None:
-        atomic_write_text(folder / "start", verdict + "\n")
+    if verdicts is not None:
+        atomic_write_text(verdicts / "start", verdict + "\n")
     if verdict != "ok":
         return 2
     if serve and signer is not None:
-        sign_until_over(signer, cfg, stop or threading.Event(), folder / "running" if folder is not None else None)
+        sign_until_over(signer, cfg, stop or threading.Event(), verdicts / "running" if verdicts is not None else None)
     return 0
+
+
+def compose_identities(robots: int, compose_file: Path) -> list[str]:
+    """The identities the signer signs: those of the services compose_file's ``services:`` runs
+    (each kind of service it names: one, or one per robot), never a tool's (``up``, ``status``) or
+    a kind it does not run; without the file, those of the services ``swarmmap up`` starts."""
+    services = {name for name, kind in kinds().items() if kind.runner is not None}  # not up's, status's
+    try:
+        named = set((yaml.safe_load(compose_file.read_text()) or {}).get("services") or {})
+    except (OSError, yaml.YAMLError, AttributeError):
+        named = {name for name in services if kinds()[name].up_order is not None}
+    return [name for name in identities(robots) if name.rsplit("-", 1)[0] in named & services]
 
 
 def sign_until_over(signer: Signer, cfg: RunConfig, stop: threading.Event, running: Path | None = None) -> None:

@@ -325,6 +325,7 @@ LAUNCHER_VARIABLES: dict[str, str] = {
                             "host: that + 1 + i)",
     "SWARMMAP_END_GRACE_S": "deploy/slurm/team.sbatch: how long the services get to leave once the run is over",
     "SWARMMAP_ROBOT_CLAIMS": "compose.yaml (inside each container): where replicas claim their robot ids",
+    "SWARMMAP_START": "compose.yaml (inside each container): the folder of the start's verdict, read-only to the services",
     "SWARMMAP_VIEWER_PORT": "compose.yaml: the host port of the observer's web viewer (on 127.0.0.1)",
     "SWARMMAP_VIEWER_GRPC_PORT": "compose.yaml: the host port of the observer's gRPC server (on 127.0.0.1)",
 }

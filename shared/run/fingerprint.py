@@ -29,7 +29,7 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     "": ("preset", "run_id", "key_prefix", "run_dir", "label", "log_level"),
     # how sessions find each other, authenticate and how long a stuck link is borne
     "zenoh": ("mode", "connect", "listen", "multicast_scouting", "config_file", "secrets", "connect_timeout_s", "insecure",
-              "signer", "keep_ca", "stuck_s", "shared_memory"),
+              "signer", "signer_requests", "keep_ca", "stuck_s", "shared_memory"),
     "router": ("ident", "hosts"),
     # exporting the plan and exiting; the pace of the simulation and who it waits for (the scans are the same)
     "world": ("export", "time_scale", "wait_for", "wait_for_consumers_s"),

@@ -127,8 +127,12 @@ class ZenohSettings(Section):
         None, description="folder of the run's credentials (swarmmap secrets; a folder per service, each reads its own): "
                           "every link is mutual TLS and the router enforces the run's access policy; default RUN_DIR/secrets")
     signer: Path | None = Field(
-        None, description="folder where the run's signing step issues certificates (compose): a service makes its own key "
-                          "in zenoh.secrets and asks there for a certificate of the identity it serves")
+        None, description="folder where the run's signing step publishes its CA certificate and the certificates it "
+                          "issues (compose; read-only to the services): a service makes its own key in zenoh.secrets "
+                          "and asks for a certificate of the identity it serves")
+    signer_requests: Path | None = Field(
+        None, description="folder where services leave their certificate requests for the signer (compose: a folder "
+                          "they may write, apart from zenoh.signer); unset: zenoh.signer/requests")
     keep_ca: Path | None = Field(
         None, description="swarmmap secrets: keep the run's CA key in this folder (outside zenoh.secrets and the run "
                           "directory) to issue more certificates later; unset: the key is discarded once they are issued")

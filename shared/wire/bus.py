@@ -104,7 +104,7 @@ def credentials(settings: ZenohSettings, who: str, run: str) -> Path:
     folder = own_folder(settings.secrets, who, run)
     if settings.signer is not None:
         try:
-            return enrol(folder, who, run, settings.signer, settings.connect_timeout_s)
+            return enrol(folder, who, run, settings.signer, settings.connect_timeout_s, requests=settings.signer_requests)
         except (SecretsError, OSError) as exc:
             raise ConfigError(f"config error:\n  zenoh.signer: {who} got no certificate: {exc}") from None
     missing = [str(folder / name) for name in (CA_FILE, CERT_FILE, KEY_FILE) if not (folder / name).is_file()]

@@ -278,12 +278,14 @@ def load_own(folder: Path) -> tuple[x509.Certificate, x509.Certificate, ec.Ellip
 REQUESTS, ISSUED = "requests", "issued"
 
 
-def enrol(own: Path, who: str, run: str, signer: Path, timeout: float, poll_s: float = 0.2) -> Path:
+def enrol(own: Path, who: str, run: str, signer: Path, timeout: float, poll_s: float = 0.2,
+          requests: Path | None = None) -> Path:
     """Credentials for ``who`` in ``own`` (this container's folder, owner only) from the signing
     step at ``signer``: a key made here (kept: a restarted container asks with the same key),
-    a certificate signing request in ``signer/requests/``, and the certificate the signer
-    leaves in ``signer/issued/``, checked against its CA. Returns ``own``."""
+    a certificate signing request in ``requests`` (default ``signer/requests/``), and the
+    certificate the signer leaves in ``signer/issued/``, checked against its CA. Returns ``own``."""
     name = cert_name(who, run)
+    requests = requests if requests is not None else signer / REQUESTS
     deadline = time.monotonic() + timeout
     ca_path = signer / CA_FILE
     while not ca_path.is_file():
@@ -301,8 +303,8 @@ def enrol(own: Path, who: str, run: str, signer: Path, timeout: float, poll_s: f
         write_private(key_path, pem_key(ec.generate_private_key(ec.SECP256R1())))
     key = serialization.load_pem_private_key(key_path.read_bytes(), None)
     csr = (x509.CertificateSigningRequestBuilder().subject_name(_name(name)).sign(key, hashes.SHA256()))
-    (signer / REQUESTS).mkdir(parents=True, exist_ok=True)
-    atomic_write(signer / REQUESTS / f"{name}.csr", pem(csr))
+    requests.mkdir(parents=True, exist_ok=True)
+    atomic_write(requests / f"{name}.csr", pem(csr))
     answer, refused = signer / ISSUED / f"{name}.pem", signer / ISSUED / f"{name}.refused"
     while time.monotonic() < deadline:
         if refused.is_file():
@@ -323,25 +325,28 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 class Signer:
     """The signing step of a compose run: holds the run's CA key in memory (never on disk),
-    publishes its certificate in ``folder`` and signs each identity's request once: the first
-    key that asks for an identity gets it, the same key again gets the same certificate (a
-    restarted container), any other key is refused and named in the log."""
+    publishes its certificate and its answers in ``folder`` (which only it writes: the services
+    mount it read-only) and signs each identity's request, taken from ``requests`` (a folder the
+    services write; default ``folder/requests``), once: only the identities ``names`` (those of
+    the services compose runs), the first key that asks for one gets it, the same key again gets
+    the same certificate (a restarted container), any other key is refused and named in the log."""
 
-    def __init__(self, folder: Path, run: str, names: list[str], server_names: list[str]):
+    def __init__(self, folder: Path, run: str, names: list[str], server_names: list[str], requests: Path | None = None):
         self.folder, self.run, self.server_names = folder, run, server_names
+        self.requests = requests if requests is not None else folder / REQUESTS
         self.allowed = {cert_name(n, run): n for n in names}
         self.authority = Authority.new(run)
         self.issued: dict[str, bytes] = {}  # certificate name -> the public key it was issued to
-        for sub in (REQUESTS, ISSUED):
-            folder.joinpath(sub).mkdir(parents=True, exist_ok=True)
-            for old in folder.joinpath(sub).iterdir():  # an earlier up's requests and answers are not this run's
+        for sub in (self.requests, folder / ISSUED):
+            sub.mkdir(parents=True, exist_ok=True)
+            for old in sub.iterdir():  # an earlier up's requests and answers are not this run's
                 old.unlink()
         atomic_write(folder / CA_FILE, pem(self.authority.cert))
 
     def serve_once(self) -> int:
         """Answer every request waiting; returns how many certificates were issued."""
         done = 0
-        for path in sorted((self.folder / REQUESTS).glob("*.csr")):
+        for path in sorted(self.requests.glob("*.csr")):
             name = path.name.removesuffix(".csr")
             try:
                 why = self.answer(name, x509.load_pem_x509_csr(path.read_bytes()))
@@ -358,7 +363,7 @@ class Signer:
     def answer(self, name: str, csr: x509.CertificateSigningRequest) -> str | None:
         """Issue ``name``'s certificate for the key of ``csr``; returns why not, or None."""
         if name not in self.allowed:
-            return f"{name} is no identity of run {self.run}"
+            return f"{name} is no identity of a service of run {self.run} (the signer signs its {len(self.allowed)} services' only)"
         if not csr.is_signature_valid or common_name_of(csr) != name:
             return "the request is not signed by its key, or names another identity"
         key = public_der(csr.public_key())

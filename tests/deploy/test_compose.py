@@ -121,25 +121,30 @@ def private_keys(container: str, folder: str) -> list[str]:
 
 def assert_each_container_holds_its_own_key_only(clone: Path, runs: Path) -> None:
     """Every service's container holds exactly one key, of an identity no other holds; none but
-    `start` mounts more than its own run and the shared volume; the shared volume holds no key."""
+    `start` mounts more than its own run and the two shared volumes, or writes the `compose` one
+    (the start's verdict, the CA certificate and the certificates); no shared volume holds a key."""
     held: dict[str, str] = {}
     for container, service in containers(clone).items():
         mounts = json.loads(inspect(container, "{{json .Mounts}}"))
         where = {m["Destination"]: m.get("Source", "") for m in mounts}
+        writable = {m["Destination"] for m in mounts if m.get("RW")}
         keys = private_keys(container, "/tmp/swarmmap-credentials")
         if service == "start":
-            assert keys == [] and set(where) == {"/runs", "/compose", "/etc/swarmmap/compose.yaml", "/data"}, (where, keys)
+            assert keys == [] and set(where) == {"/runs", "/compose", "/claims", "/etc/swarmmap/compose.yaml", "/data"}, (where, keys)
+            assert writable == {"/runs", "/compose", "/claims"}, writable
             continue
         data = {"/data"} if service == "world" else set()  # the world alone reads a log or plan file
-        assert set(where) == {"/runs/compose", "/compose"} | data and Path(where["/runs/compose"]) == runs / "compose", where
+        assert set(where) == {"/runs/compose", "/compose", "/claims"} | data and Path(where["/runs/compose"]) == runs / "compose", where
+        assert writable == {"/runs/compose", "/claims"}, f"{service} {container} may write {writable}"
         assert len(keys) == 1 and keys[0].endswith("@compose/key.pem"), f"{service} {container} holds {keys}"
         identity = keys[0].split("/")[-2]
         assert identity.split("-")[0] == service and identity not in held, (identity, held)
         held[identity] = container
     image = inspect(next(iter(containers(clone))), "{{.Image}}")
-    shared = subprocess.run(["docker", "run", "--rm", "--entrypoint", "grep", "-v", f"{PROJECT}_compose:/c", image,
-                             "-rl", "PRIVATE KEY", "/c"], capture_output=True, text=True, timeout=120)
-    assert shared.stdout.strip() == "", f"private keys in the shared volume: {shared.stdout}"
+    for volume in ("compose", "claims"):
+        shared = subprocess.run(["docker", "run", "--rm", "--entrypoint", "grep", "-v", f"{PROJECT}_{volume}:/c", image,
+                                 "-rl", "PRIVATE KEY", "/c"], capture_output=True, text=True, timeout=120)
+        assert shared.stdout.strip() == "", f"private keys in the shared volume {volume}: {shared.stdout}"
 
 
 def owners(folder: Path) -> set[tuple[int, int]]:

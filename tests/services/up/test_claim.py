@@ -15,13 +15,13 @@ import threading
 
 import pytest
 
-from swarmmap.services.up.claim import nobody_running, start
+from swarmmap.services.up.claim import compose_identities, nobody_running, start
 from swarmmap.shared.run.config import ZenohSettings, task_robot
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.claims import ClaimError, claim_robot, forget_claims
 from swarmmap.shared.wire.protocol import Keys
 from swarmmap.shared.wire.secrets import SecretsError, access_policy, enrol
-from tests.conftest import free_port, wait_until
+from tests.conftest import REPO, free_port, wait_until
 
 
 def _claim_at_once(folder, barrier, holder, robots, out):
@@ -135,35 +135,49 @@ def test_start_refuses_a_wrong_setting_and_says_why(tmp_path, capsys):
 @pytest.mark.timeout(120)
 @pytest.mark.integration
 def test_the_signer_issues_each_identity_to_one_key_and_no_private_key_is_shared(tmp_path):
-    run_dir, shared = tmp_path / "compose", tmp_path / "shared"
-    signer = shared / "signer"
-    env = compose_env(run_dir, 2) | {"SWARMMAP_ZENOH__SIGNER": str(signer), "SWARMMAP_ZENOH__SECRETS": str(tmp_path / "own-start")}
+    run_dir, shared, verdicts = tmp_path / "compose", tmp_path / "shared", tmp_path / "start"
+    signer, requests = verdicts / "signer", shared / "requests"  # compose: signer's folder read-only to the services
+    env = compose_env(run_dir, 2) | {"SWARMMAP_ZENOH__SIGNER": str(signer), "SWARMMAP_ZENOH__SECRETS": str(tmp_path / "own-start"),
+                                     "SWARMMAP_START": str(verdicts), "SWARMMAP_ZENOH__SIGNER_REQUESTS": str(requests)}
     stop = threading.Event()
-    thread = threading.Thread(target=start, args=(env, True, stop), daemon=True)
+    thread = threading.Thread(target=start, args=(env, True, stop, REPO / "compose.yaml"), daemon=True)
     thread.start()
     try:
-        assert wait_until(lambda: (shared / "start").exists() and (shared / "start").read_text() == "ok\n", 60, 0.1)
+        assert wait_until(lambda: (verdicts / "start").exists() and (verdicts / "start").read_text() == "ok\n", 60, 0.1)
+        assert not (shared / "start").exists() and (verdicts / "running").is_file()
         containers = {name: tmp_path / "containers" / name for name in ("router", "learner-a", "learner-b")}
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         keys = Keys("swarmmap", "compose")
         router = ZenohSettings(mode="router", listen=[endpoint], multicast_scouting=False, secrets=containers["router"],
-                               signer=signer, connect_timeout_s=30)
+                               signer=signer, signer_requests=requests, connect_timeout_s=30)
         member = ZenohSettings(connect=[endpoint], multicast_scouting=False, secrets=containers["learner-a"], signer=signer,
-                               connect_timeout_s=30)
+                               signer_requests=requests, connect_timeout_s=30)
         with Bus.open(router, keys, "router", 0, policy=access_policy(keys, 2)), Bus.open(member, keys, "learner", 1) as learner:
             learner.announce()
             assert wait_until(lambda: ("learner", "1") in learner.alive("learner"), 10)  # a secure session, end to end
         with pytest.raises(SecretsError, match="already issued to another key"):  # a second container claiming learner 1
-            enrol(containers["learner-b"] / "learner-1@compose", "learner-1", "compose", signer, 30)
-        again = enrol(containers["learner-a"] / "learner-1@compose", "learner-1", "compose", signer, 30)  # its restart
+            enrol(containers["learner-b"] / "learner-1@compose", "learner-1", "compose", signer, 30, requests=requests)
+        for tool in ("up-0", "status-0", "learner-2"):  # identities no service of this compose run holds
+            with pytest.raises(SecretsError, match=f"{tool}@compose is no identity of a service of run compose"):
+                enrol(containers["learner-b"] / f"{tool}@compose", tool, "compose", signer, 30, requests=requests)
+        again = enrol(containers["learner-a"] / "learner-1@compose", "learner-1", "compose", signer, 30,
+                      requests=requests)  # its restart
         assert (again / "cert.pem").is_file()
     finally:
         stop.set()
         thread.join(30)
     keys_on_disk = [p for p in tmp_path.rglob("*") if p.is_file() and b"PRIVATE KEY" in p.read_bytes()]
-    assert sorted(p.relative_to(tmp_path / "containers").parts[0] for p in keys_on_disk) == ["learner-a", "learner-b", "router"], \
+    assert sorted({p.relative_to(tmp_path / "containers").parts[0] for p in keys_on_disk}) == ["learner-a", "learner-b", "router"], \
         f"private keys outside the containers' own folders: {keys_on_disk}"
     assert not (run_dir / "secrets").exists()
+
+
+def test_the_signer_signs_the_services_compose_runs_only(tmp_path):
+    assert set(compose_identities(2, REPO / "compose.yaml")) == {"router-0", "recorder-0", "world-0", "observer-0", "lidar-0",
+                                                                 "lidar-1", "learner-0", "learner-1"}
+    (tmp_path / "compose.yaml").write_text("services:\n  start: {}\n  router: {}\n  learner: {}\n  up: {}\n")
+    assert compose_identities(1, tmp_path / "compose.yaml") == ["router-0", "learner-0"]  # what the file runs, no tool
+    assert "status-0" not in compose_identities(1, tmp_path / "none.yaml") and "learner-0" in compose_identities(1, tmp_path / "x")
 
 
 def test_the_start_sees_when_no_service_runs_any_more(tmp_path):
