@@ -101,12 +101,13 @@ class MemorySampler(threading.Thread):
         self.learner_series: list[tuple[float, int]] = []  # (seconds, KiB of every learner together)
         self.cpu: dict[int, tuple[str, float]] = {}  # pid -> (service, CPU seconds at its last sample)
         self.own_cpu_s = 0.0
+        self.commands: dict[int, str] = {}  # pid -> its command line
         self.stop = threading.Event()
 
     def run(self) -> None:
         t0 = time.monotonic()
         cpu0 = time.thread_time()
-        commands: dict[int, str] = {}
+        commands = self.commands
         root_cmd = command(self.root)
         next_pss = t0
         while not self.stop.is_set():
