@@ -53,19 +53,22 @@ class StateCodec:
         self.logged: set[tuple[str, int]] = set()
         self.unusable = 0  # States received that could not be rebuilt or were off the exchange rounds
 
-    def send_state(self, round: int, params: np.ndarray) -> None:
+    def send_state(self, round: int, params: np.ndarray, whole: bool = False) -> None:
+        """Send the State of ``round``; ``whole``: one that stands alone (a compressed chain's key
+        frame: the final State said again after the run, for a neighbour that restarted since)."""
         wire = round * self.every
         where = self.position() if self.position is not None else None
         c = self.compressor
         if c.plain and where is None and self.coverage is None:
             self.inner.send_state(wire, params)  # the fast path: the frame the node wrote its parameters into
             return
-        if self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq:
+        held = self.cached is not None and self.cached[0] == round and self.cached[1] == c.seq
+        if held and not (whole and self.cached[2].base is not None):
             body = self.cached[2]  # the same State again: the same bytes (receivers ignore duplicates)
         else:
             # A State of an older round (sent again to a neighbour that restarted) goes whole: it
             # starts the replicas again for whoever missed what came before; the next ones add to it.
-            body = c.body(params, keyframe=self.cached is not None and round < self.cached[0])
+            body = c.body(params, keyframe=whole or (self.cached is not None and round < self.cached[0]))
             self.cached = (round, c.seq, body)
         if where is not None:
             body = dataclasses.replace(body, position=[float(where[0]), float(where[1])])

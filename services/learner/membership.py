@@ -8,8 +8,10 @@ repeats; COMPLETE_WAIT times as long for the RoundComplete of a round whose Stat
 that sent only States this node refuses for that long, is left out, and the round finishes
 with the neighbours the node has. It is taken back once its State of the round at hand is here
 (one of a later round alone brings it back at that round, not before), except the
-REFUSED_OUT_FOR_GOOD-th time it is left out for refused States: then for good (each return cost
-the team ``silent_after`` again).
+REFUSED_OUT_FOR_GOOD-th time it is left out for refused States, or for a State whose
+RoundComplete never came (an honest node always completes the round it sent a State for, unless
+it is gone): then for good (each return cost the team ``silent_after`` again, and on a sparse
+graph the wait spreads to the neighbours' own neighbours).
 Silence is counted while the node waits, not while it computes (:meth:`Membership.paused`).
 
 A neighbour left out because it was gone (its liveliness token vanished: its host lost, a link
@@ -109,8 +111,7 @@ class Reunion:
 class Membership:
     """The neighbours a node's rounds wait for, and when each was last heard."""
 
-    def __init__(self, node_id: int, neighbours: set[int], rules: ExchangeRules, stats: ExchangeStats,
-                 clip: Clip | None = None):
+    def __init__(self, node_id: int, neighbours: set[int], rules: ExchangeRules, stats: ExchangeStats, clip: Clip | None = None):
         self.node_id, self.neighbours, self.rules, self.stats = node_id, frozenset(neighbours), rules, stats
         self.active = set(neighbours)  # the neighbours this round waits for
         self.returning: set[int] = set()  # left out, but sent a State of a later round: back once one of the round at hand is here
@@ -118,8 +119,8 @@ class Membership:
         self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
         self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
         self.banned: set[int] = set()  # said two different things for one round: never heard again
-        self.refusals_out: dict[int, int] = {}  # per neighbour: how often it was left out for sending only refused States
-        self.lost_since: dict[int, float] = {}
+        self.refusals_out: dict[tuple[int, str], int] = {}  # (neighbour, why): how often it was left out for a fault of its own
+        self.lost_since: dict[int, float] = {}  # when each neighbour's token vanished; when none was left
         self.alone_since: float | None = None
         self.reunion = Reunion(clip)
 
@@ -167,8 +168,7 @@ class Membership:
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
 
     def paused(self, busy: float) -> float:
-        """The node computed for ``busy`` seconds (returned): silence counts while it listens, not
-        meanwhile (what the neighbours sent meanwhile waits in its inbox)."""
+        """Silence counts while the node listens, not while it computed (``busy`` s, returned: it waits in its inbox)."""
         for j in self.heard:
             self.heard[j] += busy
             if j in self.refused_since:
@@ -180,6 +180,13 @@ class Membership:
         self.refused_since.pop(j, None)
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", self.node_id, j, why, rnd)
+
+    def out_again(self, j: int, why: str, rnd: int, reason: str) -> None:
+        """Leave ``j`` out for a fault of its own (``reason``); the REFUSED_OUT_FOR_GOOD-th time for good."""
+        self.refusals_out[(j, reason)] = times = self.refusals_out.get((j, reason), 0) + 1
+        if times < REFUSED_OUT_FOR_GOOD:
+            return self.leave_out(j, why, rnd)
+        self.ban(j, f"{why}, for the {times}nd time", rnd, reason)
 
     def came_back(self, j: int, rnd: int, now_round: bool) -> None:
         """Neighbour ``j``, left out, sent a State: of the round at hand before the update
@@ -239,14 +246,11 @@ class Membership:
                 self.reunion.away.add(j)
             elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
                 why = f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s"
-                self.refusals_out[j] = self.refusals_out.get(j, 0) + 1
-                if self.refusals_out[j] >= REFUSED_OUT_FOR_GOOD:
-                    self.ban(j, f"{why}, for the {self.refusals_out[j]}nd time", rnd, "refused")
-                else:
-                    self.leave_out(j, why, rnd)
+                self.out_again(j, why, rnd, "refused")
+            elif now - self.heard[j] > silent_after and completing:  # its State is here, its RoundComplete is not
+                self.out_again(j, f"sent its State but no RoundComplete for {now - self.heard[j]:.0f} s", rnd, "incomplete")
             elif now - self.heard[j] > silent_after:
-                what = "sent no RoundComplete" if completing else "has been silent"
-                self.leave_out(j, f"{what} for {now - self.heard[j]:.0f} s", rnd)
+                self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
         if self.neighbours and not self.active:
             self.alone_since = self.alone_since or now
             if now - self.alone_since > r.peer_timeout:

@@ -398,9 +398,10 @@ def train_in_process(learners: list[RobotLearner], stop: threading.Event) -> Non
 def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     """One robot over Zenoh: subscribe to exactly its neighbours (known once the world answered),
     say so with an "exchange" token (neighbours start Algorithm 1 once they see it), train, then
-    say the final State and Metrics again now and then until the run is over: a neighbour that
-    restarts behind a finished team catches up to it, and a recorder cut off by a partition when
-    this robot finished hears of it once the link is back (it keeps the first)."""
+    say the final State and Metrics again now and then until the run is over (``run/done``, or the
+    recorder gone for ``peer_timeout_s``): a neighbour that restarts behind a finished team, however
+    late, catches up to it, and a recorder cut off by a partition when this robot finished hears of
+    it once the link is back (it keeps the first)."""
     s, cfg = me.s, me.cfg
     transport = me.compose(lambda layout: ZenohTransport(bus, me.robot, me.neighbours, layout.size, s.inbox_limit))
     if any_faults(cfg.faults):
@@ -412,10 +413,15 @@ def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     if missing:
         log.warning("robot %d: starting without neighbour(s) %s (not ready to exchange)", me.robot, sorted(missing))
     run_all([me], {me.robot: transport}, stop)
-    deadline = time.monotonic() + (s.peer_timeout_s if bus.alive("recorder") else 0.5)
-    while not stop.wait(min(s.resend_after_s, max(0.0, deadline - time.monotonic()))) and time.monotonic() < deadline:
-        transport.send_state(s.rounds // s.exchange_every, me.final_state)
+    if not bus.alive("recorder"):  # nobody will say the run is over
+        stop.wait(0.5)
+        return
+    recorder_seen = time.monotonic()
+    while not stop.wait(s.resend_after_s) and time.monotonic() - recorder_seen < s.peer_timeout_s:
+        me.codec.send_state(s.rounds // s.exchange_every, me.final_state, whole=True)  # (a key frame: rebuilt by anyone)
         me.metrics_pub.put(me.final_metrics)
+        if bus.alive("recorder"):  # (gone for peer_timeout_s, e.g. cut off for good: leave)
+            recorder_seen = time.monotonic()
 
 
 def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:

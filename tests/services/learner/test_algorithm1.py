@@ -427,7 +427,7 @@ def test_a_member_that_repeats_its_state_without_a_round_complete_is_left_out(ca
     results, stats, _ = hostile_pair(send)
     assert set(results) == {0, 1}
     assert all(s.left_out == 1 and s.rounds_done == 5 for s in stats.values())
-    assert "neighbour 2 sent no RoundComplete" in caplog.text
+    assert "neighbour 2 sent its State but no RoundComplete" in caplog.text
 
 
 def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):

@@ -40,3 +40,31 @@ def test_silence_is_no_step_forward_and_a_round_complete_gets_longer():
     m2.heard = {1: 0.0}
     m2.check({1}, set(), rnd=0, now=1.5)
     assert m2.active == set()
+
+
+def test_a_neighbour_that_sends_states_without_their_round_complete_again_stays_out(caplog):
+    """A neighbour taken back by its State of the round at hand whose RoundComplete never comes (a
+    far-future or repeating member whose State of a round lands on the round at hand) is left out
+    after COMPLETE_WAIT x silent_after; the REFUSED_OUT_FOR_GOOD-th time for good. Silence alone
+    (no State) only leaves it out until it speaks again."""
+    from swarmmap.services.learner.membership import COMPLETE_WAIT
+
+    stats = ExchangeStats()
+    m = Membership(0, {1, 2}, ExchangeRules(silent_after=1.0), stats)
+    now = 0.0
+    for time_out in range(REFUSED_OUT_FOR_GOOD):
+        m.heard = dict.fromkeys(m.heard, now)
+        now += COMPLETE_WAIT * 1.0 + 0.1
+        m.check({1}, set(), rnd=3 * time_out, now=now, completing=True)
+        assert 1 not in m.active
+        m.came_back(1, 3 * time_out + 3, now_round=True)
+        assert (1 in m.active) == (time_out + 1 < REFUSED_OUT_FOR_GOOD)
+    assert 1 in m.banned and stats.refused["incomplete"] == 1 and m.active == {2}
+    assert "sent its State but no RoundComplete for 2 s, for the 2nd time; it is left out for the rest of the run" in caplog.text
+    for _ in range(REFUSED_OUT_FOR_GOOD + 1):  # silent (no State): left out, taken back each time
+        m.heard[2] = now
+        now += 1.5
+        m.check({2}, set(), rnd=9, now=now)
+        assert 2 not in m.active
+        m.came_back(2, 10, now_round=True)
+        assert 2 in m.active
