@@ -7,8 +7,8 @@ A run is described by one :class:`RunConfig` (written as ``RUN_DIR/config.yaml``
 
 The layers are pydantic-settings sources (:func:`resolve`), merged section by section.
 Environment variables name a field by its path: ``SWARMMAP_SEED`` for a top-level field,
-``SWARMMAP_LEARNER__ROUNDS`` or ``SWARMMAP_ZENOH__CONNECT`` for a section's field; values are
-parsed as YAML (``[a, b]`` is a list). ``--set learner.lr_start=0.01`` overrides any field.
+``SWARMMAP_LEARNER__ROUNDS`` or ``SWARMMAP_ZENOH__CONNECT`` for a section's field; lists and
+mappings are read as YAML (``[a, b]`` is a list), ``null`` unsets a field. ``--set learner.lr_start=0.01`` overrides any field.
 A wrong value stops the service at start with a message naming the field and what it allows.
 """
 
