@@ -43,7 +43,7 @@ log = logging.getLogger("claim")
 def start(environ: dict[str, str] | None = None, serve: bool = False, stop: threading.Event | None = None,
           compose_file: Path = COMPOSE_FILE) -> int:
     """Compose's first step of a run (see the module's docstring); returns the exit status and
-    leaves its verdict in ``FOLDER/start``: ``ok``, or why the run did not start. With
+    leaves its verdict in ``START/start``: ``ok``, or why the run did not start. With
     ``zenoh.signer`` set, the run's signer is made before the verdict (so that no service sees
     an earlier run's CA) and, with ``serve``, signs the services' requests until the run is over
     (those of the services ``compose_file`` runs, :func:`compose_identities`)."""
