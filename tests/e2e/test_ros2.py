@@ -35,7 +35,7 @@ def test_ros2_robots_scans_in_occupancy_grids_out(tmp_path):
     env = ros_env()
     out, run_dir = tmp_path / "peer.json", tmp_path / "run"
     team = subprocess.Popen([*SWARMMAP, "ros2", "--namespaces", "robot_a", "robot_b", "--idle-s", "4", "--preset", "smoke",
-                             "--rounds", "20", "--run-dir", str(run_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             "--rounds", "40", "--run-dir", str(run_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env)
     peer = subprocess.Popen([sys.executable, "-m", "tests.e2e.ros2_peer", str(INTEL), str(out), "robot_a", "robot_b",
                              "--scans", "240"], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
