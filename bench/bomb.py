@@ -17,30 +17,21 @@ import argparse
 import csv
 import json
 import re
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: its common parts
 
 from common import SWARMMAP, clean_env  # noqa: E402
-from procmem import MemorySampler  # noqa: E402
+from procmem import run_sampled  # noqa: E402
 
 
 def run(run_dir: Path, args: list[str]) -> dict[int, int]:
     """Run ``swarmmap up`` into ``run_dir``; the peak RSS (KiB) of each robot's learner process."""
-    t0 = time.monotonic()
-    with open(f"{run_dir}.log", "w") as out:
-        proc = subprocess.Popen([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], stdout=out, stderr=subprocess.STDOUT,
-                                env=clean_env())
-        sampler = MemorySampler(proc.pid, every=0.1, pss_every=3600)
-        sampler.start()
-        proc.wait(3600)
-    sampler.stop.set()
-    sampler.join()
-    print(f"  ({run_dir.name}: exit {proc.returncode}, {time.monotonic() - t0:.0f} s)", flush=True)
+    status, err, seconds, sampler = run_sampled([*SWARMMAP, "up", "--run-dir", str(run_dir), *args], env=clean_env())
+    Path(f"{run_dir}.log").write_text(err)
+    print(f"  ({run_dir.name}: exit {status}, {seconds:.0f} s)", flush=True)
     peaks = {}
     for pid, kib in sampler.learner_peak.items():
         robot = re.search(r"--robot (\d+)", sampler.commands.get(pid, ""))

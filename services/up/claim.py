@@ -85,11 +85,12 @@ def compose_identities(robots: int, compose_file: Path) -> list[str]:
     """The identities the signer signs: those of the services compose_file's ``services:`` runs
     (each kind of service it names: one, or one per robot), never a tool's (``up``, ``status``) or
     a kind it does not run; without the file, those of the services ``swarmmap up`` starts."""
-    services = {name for name, kind in kinds().items() if kind.runner is not None}  # not up's, status's
+    every = kinds()
+    services = {name for name, kind in every.items() if kind.runner is not None}  # not up's, status's
     try:
         named = set((yaml.safe_load(compose_file.read_text()) or {}).get("services") or {})
     except (OSError, yaml.YAMLError, AttributeError):
-        named = {name for name in services if kinds()[name].up_order is not None}
+        named = {name for name in services if every[name].up_order is not None}
     return [name for name in identities(robots) if name.rsplit("-", 1)[0] in named & services]
 
 
