@@ -15,7 +15,7 @@ without progress, then after twice as long, up to RESEND_BACKOFF times (receiver
 duplicates; a link too slow for a round's messages is not flooded with their copies). Robots come and go
 (:mod:`~swarmmap.services.learner.membership`): a neighbour that left or went silent is left
 out (a neighbour is heard only when it moves forward: its first State of a round that this node
-takes, or its RoundComplete of a round whose State is here; a State of a far-future round or one
+takes, or its RoundComplete of a round whose State it took, whatever round this node is at; a State of a far-future round or one
 it already sent is no word from it) and the round finishes with the neighbours the node has; it is taken back when it sends a
 State of the round at hand; a node that restarts behind its team replays the rounds it lost or
 catches up to the team's round: from its own parameters, or, when it is more than REUNION_ROUNDS
@@ -108,7 +108,7 @@ class Algorithm1:
         busy_since = time.monotonic()
         used = round_states(self.members, self.screen, self.state, peers, self.late, self.rnd)
         self.state = self.update(self.rnd, self.state, dict(sorted(used.items())))
-        self.stats.update_s += self.members.paused(time.monotonic() - busy_since)
+        self.stats.update_s += self.members.progress.paused(time.monotonic() - busy_since)
         self.updated = True
         self.send_complete()
         return True
@@ -140,6 +140,8 @@ class Algorithm1:
         rounds. A neighbour that says two different things for one round is hostile: left out for good."""
         if msg.sender in self.members.banned:
             return
+        if msg.kind == "complete":  # (of any round: a node that moved on still hears a neighbour finish)
+            self.members.progress.completed(msg.sender, msg.round, now)
         if msg.kind == "state" and self.buf.held(msg.sender, msg.round) is not None:  # the first State of a round counts
             if msg.exact and self.members.judge(msg, self.check, self.state):  # a second, different, plausible one: a liar
                 self.members.equivocates(msg, self.buf, self.late, self.rnd)
@@ -147,7 +149,7 @@ class Algorithm1:
         newest = self.replay.seen(msg.sender, msg.round) if msg.kind == "state" else False
         if self.rules.round_wait > 0 and not self.joining and not self.rnd <= msg.round <= self.rnd + ROUNDS_AHEAD:
             if self.late.offer(msg, lambda m: self.members.judge(m, self.check, self.state)):  # (a newer State it takes)
-                self.members.heard_from(msg.sender, now)
+                self.members.progress.heard_from(msg.sender, now)
         elif msg.round < self.rnd:  # a neighbour behind (restarted): send it the States it needs again
             if newest:  # (it computes its rounds anew: what it sent before it died is not held against it)
                 self.buf.forget_sender(msg.sender)
@@ -158,11 +160,9 @@ class Algorithm1:
             self.on_state(msg, now)
 
     def on_complete(self, msg: Envelope, now: float) -> None:
-        """A neighbour's RoundComplete of this round or one ahead; it counts as word from the
-        neighbour only once its State of that round is here (one that completes rounds without
+        """A neighbour's RoundComplete of this round or one ahead (word from it only where it
+        completes a State taken: :meth:`Progress.completed`; one that completes rounds without
         sending its State is silent)."""
-        if self.buf.held(msg.sender, msg.round) is not None:
-            self.members.heard_from(msg.sender, now)
         if msg.round <= self.rnd + ROUNDS_AHEAD:
             self.buf.complete[msg.round].add(msg.sender)
 
@@ -183,7 +183,7 @@ class Algorithm1:
         stale = (self.joining and not self.updated) or left_behind  # own parameters rounds old: judged more loosely
         if not self.members.judge(msg, self.check_stale if stale else self.check, self.state):
             return
-        self.members.heard_from(j, now)  # a State that moves it forward: its first of a round, taken
+        self.members.progress.took_state(j, r, now)  # a State that moves it forward: its first of a round, taken
         if jump:
             self.catch_up(msg, now, left_behind)
             return
@@ -288,7 +288,7 @@ class RoundLoop:
         m = self.m
         lost = m.transport.lost_peers()
         m.replay.forget(lost)
-        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now, completing=m.updated)
+        m.members.check(m.buf.still_needed(m.members.active, m.rnd, m.updated), lost, m.rnd, now)
         if now - self.last_progress > self.resend_wait:
             m.send_state()
             if m.updated:

@@ -4,7 +4,9 @@ Robots come and go (the paper assumes they do not). :class:`Membership` holds th
 round waits for (``active``): one whose liveliness token vanished (and did not come back within
 ``rejoin_wait`` seconds, the time a launcher needs to restart it), that stayed silent for
 ``silent_after`` seconds while this node waited on it (silent: no step forward, whatever it
-repeats; COMPLETE_WAIT times as long for the RoundComplete of a round whose State it sent), or
+repeats; COMPLETE_WAIT times as long while it owes the RoundComplete of a round whose State this
+node took: it may be waiting ``silent_after`` for a neighbour of its own, and this node may have
+moved on meanwhile), or
 that sent only States this node refuses for that long, is left out, and the round finishes
 with the neighbours the node has. It is taken back once its State of the round at hand is here
 (one of a later round alone brings it back at that round, not before), except the
@@ -12,7 +14,7 @@ REFUSED_OUT_FOR_GOOD-th time it is left out for refused States, or for a State w
 RoundComplete never came (an honest node always completes the round it sent a State for, unless
 it is gone): then for good (each return cost the team ``silent_after`` again, and on a sparse
 graph the wait spreads to the neighbours' own neighbours).
-Silence is counted while the node waits, not while it computes (:meth:`Membership.paused`).
+Silence is counted while the node waits, not while it computes (:meth:`Progress.paused`).
 
 A neighbour left out because it was gone (its liveliness token vanished: its host lost, a link
 cut, a partition) learnt apart meanwhile, and so did this node: their parameters may then lie
@@ -46,7 +48,7 @@ log = logging.getLogger("learner")
 Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): theirs pulled within the screen's limit
 REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
 REFUSED_OUT_FOR_GOOD = 2  # left out this often for sending only refused States: left out for the rest of the run
-COMPLETE_WAIT = 2  # a neighbour whose State of the round is here has this many times silent_after for its RoundComplete
+COMPLETE_WAIT = 2  # a neighbour that owes the RoundComplete of a State taken has this many times silent_after for it
 RESEND_BACKOFF = 8  # a round's messages go again after resend_after seconds, then twice as long, up to 8 times it
 
 
@@ -108,6 +110,39 @@ class Reunion:
             self.until[j] = rnd + REUNION_ROUNDS
 
 
+class Progress:
+    """When each neighbour last moved forward (a State taken, or the RoundComplete of one), which
+    RoundComplete it owes, and since when it has sent only States this node refuses."""
+
+    def __init__(self, neighbours: set[int]):
+        self.heard = dict.fromkeys(neighbours, time.monotonic())  # the last step forward of each neighbour
+        self.owes: dict[int, int] = {}  # per neighbour: the round of its State taken whose RoundComplete has not come
+        self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
+
+    def heard_from(self, j: int, now: float) -> None:
+        self.heard[j] = now
+
+    def took_state(self, j: int, r: int, now: float) -> None:
+        """``j``'s State of round ``r`` was taken: a step forward; its RoundComplete of ``r`` is owed."""
+        self.heard[j] = now
+        self.owes[j] = max(self.owes.get(j, r), r)
+
+    def completed(self, j: int, r: int, now: float) -> None:
+        """``j``'s RoundComplete of round ``r``: a step forward where it completes a State taken
+        (whatever round this node is at: one that moved on still hears it finish)."""
+        if self.owes.get(j, r + 1) <= r:
+            del self.owes[j]
+            self.heard[j] = now
+
+    def paused(self, busy: float) -> float:
+        """Silence counts while the node listens, not while it computed (``busy`` s, returned: it waits in its inbox)."""
+        for j in self.heard:
+            self.heard[j] += busy
+            if j in self.refused_since:
+                self.refused_since[j] += busy
+        return busy
+
+
 class Membership:
     """The neighbours a node's rounds wait for, and when each was last heard."""
 
@@ -115,17 +150,12 @@ class Membership:
         self.node_id, self.neighbours, self.rules, self.stats = node_id, frozenset(neighbours), rules, stats
         self.active = set(neighbours)  # the neighbours this round waits for
         self.returning: set[int] = set()  # left out, but sent a State of a later round: back once one of the round at hand is here
-        now = time.monotonic()
-        self.heard = dict.fromkeys(neighbours, now)  # the last message from each neighbour
-        self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
+        self.progress = Progress(neighbours)
         self.banned: set[int] = set()  # said two different things for one round: never heard again
         self.refusals_out: dict[tuple[int, str], int] = {}  # (neighbour, why): how often it was left out for a fault of its own
         self.lost_since: dict[int, float] = {}  # when each neighbour's token vanished; when none was left
         self.alone_since: float | None = None
         self.reunion = Reunion(clip)
-
-    def heard_from(self, j: int, now: float) -> None:
-        self.heard[j] = now
 
     def judge(self, msg: Envelope, check: StateCheck | None, own: np.ndarray | None) -> bool:
         """Whether a neighbour's State passes ``check`` (against ``own``); a refused one is counted,
@@ -134,9 +164,9 @@ class Membership:
         if why is not None and own is not None and self.reunion(msg.sender, msg.round) and hasattr(check, "loose"):
             why = check.loose(msg.params, own)  # far is expected after learning apart: pulled in at the update
         if why is None:
-            self.refused_since.pop(msg.sender, None)
+            self.progress.refused_since.pop(msg.sender, None)
             return True
-        self.refused_since.setdefault(msg.sender, time.monotonic())
+        self.progress.refused_since.setdefault(msg.sender, time.monotonic())
         refuse(self.stats, self.node_id, msg, why, "implausible")
         return False
 
@@ -161,32 +191,26 @@ class Membership:
         self.banned.add(j)
         self.active.discard(j)
         self.returning.discard(j)
-        self.refused_since.pop(j, None)
+        self.progress.refused_since.pop(j, None)
         self.stats.refused[reason] += 1
         self.stats.refused_from[j] += 1
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; it is left out for the rest of the run (round %d)", self.node_id, j, why, rnd)
 
-    def paused(self, busy: float) -> float:
-        """Silence counts while the node listens, not while it computed (``busy`` s, returned: it waits in its inbox)."""
-        for j in self.heard:
-            self.heard[j] += busy
-            if j in self.refused_since:
-                self.refused_since[j] += busy
-        return busy
-
     def leave_out(self, j: int, why: str, rnd: int) -> None:
         self.active.discard(j)
-        self.refused_since.pop(j, None)
+        self.progress.refused_since.pop(j, None)
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", self.node_id, j, why, rnd)
 
-    def out_again(self, j: int, why: str, rnd: int, reason: str) -> None:
-        """Leave ``j`` out for a fault of its own (``reason``); the REFUSED_OUT_FOR_GOOD-th time for good."""
-        self.refusals_out[(j, reason)] = times = self.refusals_out.get((j, reason), 0) + 1
+    def out_again(self, j: int, why: str, rnd: int, reason: str, before: int = 0) -> None:
+        """Leave ``j`` out for a fault of its own (``reason``); the REFUSED_OUT_FOR_GOOD-th time for
+        good, counting ``before`` earlier faults (an incomplete State after a silence: an honest
+        node taken back after a silence completes the round it sent a State for)."""
+        self.refusals_out[(j, reason)] = times = self.refusals_out.get((j, reason), 0) + 1 + before
         if times < REFUSED_OUT_FOR_GOOD:
             return self.leave_out(j, why, rnd)
-        self.ban(j, f"{why}, for the {times}nd time", rnd, reason)
+        self.ban(j, f"{why}, after {before} silence(s) of its own" if before else f"{why}, for the {times}nd time", rnd, reason)
 
     def came_back(self, j: int, rnd: int, now_round: bool) -> None:
         """Neighbour ``j``, left out, sent a State: of the round at hand before the update
@@ -229,28 +253,32 @@ class Membership:
         for k in self.active:
             self.reunion.back(k, rnd)
 
-    def check(self, needed: set[int], lost: set[int], rnd: int, now: float, completing: bool = False) -> None:
+    def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
         refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``.
-        A neighbour is silent when it has not moved forward for ``silent_after`` seconds; once its
-        State of the round is here and only its RoundComplete is missing (``completing``), for
-        COMPLETE_WAIT times that (it may itself wait ``silent_after`` for a neighbour of its own
-        before its update)."""
+        A neighbour is silent when it has not moved forward for ``silent_after`` seconds; while it
+        owes the RoundComplete of a State this node took, for COMPLETE_WAIT times that (it may
+        itself wait ``silent_after`` for a neighbour of its own before its update, and this node
+        may have gone on to the next round meanwhile: the wait must not spread to it)."""
         self.lost_since = {j: self.lost_since.get(j, now) for j in lost}
-        r = self.rules
-        silent_after = r.silent_after * (COMPLETE_WAIT if completing else 1)
+        r, p = self.rules, self.progress
         for j in sorted(needed & self.active):
+            owed = j in p.owes
+            silent_after = r.silent_after * (COMPLETE_WAIT if owed else 1)
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
                 self.reunion.away.add(j)
-            elif now - self.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
-                why = f"has sent only States this node refuses for {now - self.refused_since[j]:.0f} s"
+                p.owes.pop(j, None)  # (a restarted node computes its rounds anew)
+            elif now - p.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
+                why = f"has sent only States this node refuses for {now - p.refused_since[j]:.0f} s"
                 self.out_again(j, why, rnd, "refused")
-            elif now - self.heard[j] > silent_after and completing:  # its State is here, its RoundComplete is not
-                self.out_again(j, f"sent its State but no RoundComplete for {now - self.heard[j]:.0f} s", rnd, "incomplete")
-            elif now - self.heard[j] > silent_after:
-                self.leave_out(j, f"has been silent for {now - self.heard[j]:.0f} s", rnd)
+            elif now - p.heard[j] > silent_after and owed:  # its State was taken, its RoundComplete never came
+                self.out_again(j, f"sent its State of round {p.owes.pop(j)} but no RoundComplete for "
+                                  f"{now - p.heard[j]:.0f} s", rnd, "incomplete", self.refusals_out.get((j, "silent"), 0))
+            elif now - p.heard[j] > silent_after:
+                self.refusals_out[(j, "silent")] = self.refusals_out.get((j, "silent"), 0) + 1
+                self.leave_out(j, f"has been silent for {now - p.heard[j]:.0f} s", rnd)
         if self.neighbours and not self.active:
             self.alone_since = self.alone_since or now
             if now - self.alone_since > r.peer_timeout:

@@ -427,7 +427,46 @@ def test_a_member_that_repeats_its_state_without_a_round_complete_is_left_out(ca
     results, stats, _ = hostile_pair(send)
     assert set(results) == {0, 1}
     assert all(s.left_out == 1 and s.rounds_done == 5 for s in stats.values())
-    assert "neighbour 2 sent its State but no RoundComplete" in caplog.text
+    assert "neighbour 2 sent its State of round 0 but no RoundComplete" in caplog.text
+
+
+def test_on_a_ring_the_wait_for_a_silent_member_does_not_spread_to_the_next_hop(caplog):
+    """A ring of five whose member 1 is silent (RoundCompletes, never a State): its neighbours 0
+    and 2 wait silent_after for it, and their other neighbours (4 and 3), which have gone on to
+    the next round meanwhile, wait for them rather than leave them out (they owe the RoundComplete
+    of a State taken). Node 0 gives up on member 1 a little later than node 2 (its check came
+    later): by then node 4 has gone on to round 1 and waits for node 0's State of it. Every honest
+    node finishes and only member 1 is ever left out."""
+    ring = {i: {(i - 1) % 5, (i + 1) % 5} for i in range(5)}
+    hub = MemoryHub(ring)
+    done = threading.Event()
+
+    def stall():
+        r = 0
+        while not done.is_set():
+            for q in (0, 2):
+                hub.queues[q].put(Envelope("complete", 1, r))
+            r += 1
+            done.wait(0.05)
+
+    honest = (0, 2, 3, 4)
+    stats, results = {i: ExchangeStats() for i in honest}, {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, ring[i], 4, np.full(4, float(i)), mixing_update(i), hub.transport(i),
+                                    resend_after=0.3, linger=0.2, stats=stats[i], silent_after=1.3 if i == 0 else 1.0,
+                                    peer_timeout=20)
+
+    threads = [threading.Thread(target=stall)] + [threading.Thread(target=node, args=(i,)) for i in honest]
+    for t in threads:
+        t.start()
+    for t in threads[1:]:
+        t.join(30)
+    done.set()
+    threads[0].join(5)
+    assert set(results) == set(honest)
+    assert {i: stats[i].left_out for i in honest} == {0: 1, 2: 1, 3: 0, 4: 0}, caplog.text
+    assert all(stats[i].rounds_done == 4 for i in honest)
 
 
 def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):
