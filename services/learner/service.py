@@ -48,8 +48,9 @@ from swarmmap.services.learner.clock import ClockExchange
 from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.collector import Collector
 from swarmmap.services.learner.errors import LearnerError
-from swarmmap.services.learner.exchange import ExchangeStats, PeerFailure
+from swarmmap.services.learner.exchange import CHECK_EVERY_S, ExchangeStats, PeerFailure
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
+from swarmmap.services.learner.membership import Replay
 from swarmmap.services.learner.memory_link import MemoryLink
 from swarmmap.services.learner.metrics import consensus_error, validation_bce
 from swarmmap.services.learner.node import warm_up
@@ -97,6 +98,7 @@ class RobotLearner:
         self.stats = ExchangeStats()
         self.wire: MemoryLink | None = None  # in process: its end of the hub, which counts the bytes
         self.codec: StateCodec | None = None
+        self.replay: Replay | None = None  # Algorithm 1's own States of its last rounds, for neighbours that replay them
         self.slots = compute_slots(cfg, robot)
         self.rounds: SubRounds | None = None
         self.t_start = 0.0
@@ -250,6 +252,7 @@ def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event)
                              screen=round_screen, check_stale=stale, rejoin=node.rejoin, stats=learner.stats, stop=stop)
         pace = Pace(learner.robot, slow_link(learner))
         final = RoundLoop(machine, pace).run(start, s.rounds // s.exchange_every, learner.start_round, learner.resumed)
+        learner.replay = machine.replay  # (a finished learner answers a neighbour that restarted behind it)
     codec, stats = learner.codec, learner.stats
     if codec is not None and (stats.missed or codec.ignored or codec.unusable):
         log.info("robot %d: rounds went on without %d neighbour State(s) that did not come in time; %d message(s) "
@@ -400,8 +403,9 @@ def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     say so with an "exchange" token (neighbours start Algorithm 1 once they see it), train, then
     say the final State and Metrics again now and then until the run is over (``run/done``, or the
     recorder gone for ``peer_timeout_s``): a neighbour that restarts behind a finished team, however
-    late, catches up to it, and a recorder cut off by a partition when this robot finished hears of
-    it once the link is back (it keeps the first)."""
+    late, catches up to it (jumping to the final round, or replaying the rounds it lost with this
+    node's States of them: :func:`answer_behind`), and a recorder cut off by a partition when this
+    robot finished hears of it once the link is back (it keeps the first)."""
     s, cfg = me.s, me.cfg
     transport = me.compose(lambda layout: ZenohTransport(bus, me.robot, me.neighbours, layout.size, s.inbox_limit))
     if any_faults(cfg.faults):
@@ -416,12 +420,31 @@ def train_over_zenoh(bus: Bus, me: RobotLearner, stop: threading.Event) -> None:
     if not bus.alive("recorder"):  # nobody will say the run is over
         stop.wait(0.5)
         return
-    recorder_seen = time.monotonic()
-    while not stop.wait(s.resend_after_s) and time.monotonic() - recorder_seen < s.peer_timeout_s:
-        me.codec.send_state(s.rounds // s.exchange_every, me.final_state, whole=True)  # (a key frame: rebuilt by anyone)
+    recorder_seen, final_round = time.monotonic(), s.rounds // s.exchange_every
+    for j in me.stats.final_peers if me.replay is not None else ():  # (finished too: what they replay to others is no word)
+        me.replay.seen(j, final_round)
+    while not answer_behind(me, transport, final_round, time.monotonic() + s.resend_after_s, stop) \
+            and time.monotonic() - recorder_seen < s.peer_timeout_s:
+        me.codec.send_state(final_round, me.final_state, whole=True)  # (a key frame: rebuilt by anyone)
         me.metrics_pub.put(me.final_metrics)
         if bus.alive("recorder"):  # (gone for peer_timeout_s, e.g. cut off for good: leave)
             recorder_seen = time.monotonic()
+
+
+def answer_behind(me: RobotLearner, transport: Transport, final_round: int, until: float, stop: threading.Event) -> bool:
+    """A finished learner listens until ``until``: a neighbour that restarted behind it (its
+    liveliness token vanished, then a State of an earlier round) gets this node's States of the
+    rounds it replays, as during training (:class:`Replay`). Returns whether the run was stopped."""
+    while not stop.is_set() and (left := until - time.monotonic()) > 0:
+        if me.replay is None:
+            return stop.wait(left)
+        me.replay.forget(transport.lost_peers())
+        msg = transport.receive(timeout=min(left, CHECK_EVERY_S))
+        if msg is None or msg.kind != "state" or msg.sender not in me.neighbours:
+            continue
+        if me.replay.seen(msg.sender, msg.round) and msg.round < final_round:  # its newest word, behind this node
+            me.replay.answer(msg.sender, msg.round, final_round, transport, time.monotonic())
+    return stop.is_set()
 
 
 def run_all(learners: list[RobotLearner], transports: dict, stop: threading.Event) -> None:

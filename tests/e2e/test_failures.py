@@ -88,6 +88,37 @@ def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishe
     assert not leftovers(run_dir), "a service outlived the run"
 
 
+@pytest.mark.faults
+def test_a_learner_killed_near_the_end_replays_the_rounds_it_lost_from_its_finished_team(tmp_path_factory):
+    """Killed in the last rounds, with no wait for its return (rejoin_wait_s 0): its team finishes
+    without it while it restarts from its last checkpoint (smoke: every 5 rounds), fewer rounds
+    back than its neighbours keep for a replay (checkpoint_every + 2), too few to jump; the
+    finished neighbours send it their States of the rounds it lost, it replays them and finishes,
+    and the run is ok."""
+    rounds, robot = 200, 2
+    base = tmp_path_factory.getbasetemp() / "kill-trials"
+    clean_dir = base / "clean"
+    if not (clean_dir / "summary.json").exists():
+        assert up(clean_dir, *SMOKE, "--rounds", str(rounds)).wait(600) == 0
+    run_dir = base / "near-the-end"
+    proc = up(run_dir, *SMOKE, "--rounds", str(rounds), "--set", "learner.rejoin_wait_s=0")
+    try:
+        kill_at_round(run_dir, "learner", robot, rounds - 5)
+        assert proc.wait(600) == 0, (run_dir.parent / f"{run_dir.name}.up.log").read_text()[-3000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and summary["services"][f"learner-{robot}"]["restarts"] == 1
+    log = (run_dir / "logs" / f"learner-{robot}.log").read_text()
+    assert "resuming from" in log and f"robot {robot} done: {rounds} rounds" in log
+    neighbours = "".join((run_dir / "logs" / f"learner-{i}.log").read_text() for i in (0, 1))
+    assert f"neighbour {robot} is back at round" in neighbours, "no finished neighbour sent it the rounds it lost"
+    clean = final_losses(clean_dir)
+    for r, loss in final_losses(run_dir).items():
+        assert loss <= 1.1 * clean[r], f"robot {r}: {loss:.4f} against {clean[r]:.4f} clean"
+
+
 def final_points(run_dir) -> dict[str, int]:
     """Each robot's training points, from its final Metrics row."""
     import csv
