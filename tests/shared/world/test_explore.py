@@ -1,0 +1,171 @@
+"""Exploration's parts on a real procedural plan: team coverage judged on the ground truth, the
+frontier and uncertainty policies' goals, teammates' goals passed over, and a team of kinematic
+robots that covers a building by each policy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swarmmap.shared.world.explore import (
+    Claims,
+    Sensor,
+    TeamCoverage,
+    distance_at,
+    frontier_goal,
+    parse_starts,
+    seen_cells,
+    spread_starts,
+    uncertainty_goal,
+)
+from swarmmap.shared.world.floorplan import procedural
+from swarmmap.shared.world.logodds import build_logodds
+from swarmmap.shared.world.paths import path_length, point_along
+from swarmmap.shared.world.sensing import beam_angles, raycast_grid
+
+SENSOR = Sensor(beams=72, max_range=3.5)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return procedural(2, 2, seed=4).occupancy(0.1)
+
+
+def scan(truth, xy):
+    angles = beam_angles(SENSOR.beams)
+    ranges, hit = raycast_grid(truth, np.asarray(xy, np.float64)[None], angles[None], SENSOR.max_range)
+    return angles, ranges[0], hit[0]
+
+
+def test_coverage_grows_with_scans_and_counts_only_the_reachable_free_space(truth):
+    start = spread_starts(truth, 1, seed=0)
+    cov = TeamCoverage(truth, start)
+    assert 0 < cov.total < (truth.grid == 0).sum() + 1
+    assert cov.fraction() == 0.0
+    angles, ranges, _ = scan(truth, start[0])
+    cov.add_scan(start[0], angles, ranges)
+    first = cov.fraction()
+    assert 0.02 < first < 0.6
+    rows, cols = np.nonzero(cov.seen)
+    xy = np.stack([truth.origin[0] + (cols + 0.5) * 0.1, truth.origin[1] + (rows + 0.5) * 0.1], axis=1)
+    assert np.linalg.norm(xy - start[0], axis=1).max() <= SENSOR.max_range + 0.1
+    cov.add_scan(start[0], angles, ranges)
+    assert cov.fraction() == first, "the same scan twice sees nothing new"
+
+
+def test_spread_starts_are_clear_and_apart_and_parse_starts_refuses_nonsense(truth):
+    starts = spread_starts(truth, 3, seed=1)
+    assert (truth.clearance()[truth.cells(starts)[:2]] >= 0.3).all()
+    assert min(np.linalg.norm(starts[i] - starts[j]) for i in range(3) for j in range(i)) > 2.0
+    assert (spread_starts(truth, 3, seed=1) == starts).all()
+    assert parse_starts("1,2; 3.5,4", 2).tolist() == [[1, 2], [3.5, 4]]
+    for bad, why in [("1,2", "1 start"), ("1,2;x,4", "no \"x,y\" pair"), ("1,2;nan,4", "not finite")]:
+        with pytest.raises(ValueError, match=why):
+            parse_starts(bad, 2)
+
+
+def test_seen_cells_stop_at_the_first_wall():
+    occupied = np.zeros((20, 20), bool)
+    occupied[:, 10] = True  # a wall at x in [1.0, 1.1)
+    cells = seen_cells(occupied, (0.0, 0.0), 0.1, np.array([[0.55, 1.05]]), Sensor(beams=36, max_range=3.0))[0]
+    cols = np.flatnonzero(cells) % 20
+    assert cols.max() == 10 and cells.reshape(20, 20)[:, 10].any(), "the wall's own cell is seen, nothing behind it"
+
+
+def test_the_frontier_goal_lies_where_known_space_ends_and_a_teammates_goal_is_passed_over(truth):
+    start = spread_starts(truth, 1, seed=0)[0]
+    angles, ranges, hit = scan(truth, start)
+    grid = build_logodds(truth.grid.shape, truth.origin, truth.resolution, start[None], angles[None], ranges[None], hit[None])
+    goal = frontier_goal(0, start, grid, Claims())
+    assert goal is not None and len(goal.path) >= 2
+    assert not truth.occupied(goal.path).any() and not truth.occupied(np.array([goal.xy])).any()
+    r, c, _ = truth.cells(np.array([goal.xy]))
+    near = grid.known()[max(0, r[0] - 4) : r[0] + 5, max(0, c[0] - 4) : c[0] + 5]
+    assert not near.all(), "a frontier goal lies next to space no beam reached"
+    other = frontier_goal(0, start, grid, Claims({1: goal.xy}, separation=1.0))
+    assert other is not None and np.linalg.norm(np.subtract(other.xy, goal.xy)) > 1.0
+
+
+def test_the_uncertainty_goal_goes_where_the_model_is_unsure(truth):
+    """A model sure of the west half and unsure of the east half (std 0.5 there) sends the robot
+    east, on a path that stays in believed free space; a teammate's goal is passed over."""
+    mean = np.where(truth.grid == 1, 0.95, 0.05).astype(np.float32)
+    std = np.zeros_like(mean)
+    x = truth.origin[0] + (np.arange(truth.grid.shape[1]) + 0.5) * truth.resolution
+    mid = (x.min() + x.max()) / 2
+    std[:, x > mid] = 0.5
+    start = spread_starts(truth, 1, seed=0)[0]
+    goal = uncertainty_goal(0, start, mean, std, truth.origin, truth.resolution, Claims(), sensor=SENSOR)
+    assert goal is not None and goal.xy[0] > mid - SENSOR.max_range / 2
+    assert not truth.occupied(goal.path).any()
+    other = uncertainty_goal(0, start, mean, std, truth.origin, truth.resolution, Claims({3: goal.xy}), sensor=SENSOR)
+    assert other is not None and np.linalg.norm(np.subtract(other.xy, goal.xy)) > 1.5
+    flat = uncertainty_goal(0, start, mean, None, truth.origin, truth.resolution, Claims(), sensor=SENSOR, kind="entropy")
+    assert flat is not None  # (no std: the entropy of the mean)
+
+
+def explore(truth, policy: str, robots: int, seed: int, budget_m: float = 60.0, step: float = 0.25):
+    """Kinematic robots on the ground truth: each drives its path in steps, scanning at each,
+    and asks ``policy`` for a new goal when it arrives (or none is left). Returns the coverage
+    and the team's distance after each step, and whether any robot stood in a wall."""
+    starts = spread_starts(truth, robots, seed)
+    cov = TeamCoverage(truth, starts)
+    poses, angles = list(starts), beam_angles(SENSOR.beams)
+    scans: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    paths: list[np.ndarray | None] = [None] * robots
+    done, driven, claims = [False] * robots, [0.0] * robots, Claims()
+    history, in_wall = [], False
+
+    def look(i):
+        _, ranges, hit = scan(truth, poses[i])
+        scans.append((poses[i].copy(), ranges, hit))
+        cov.add_scan(poses[i], angles, ranges)
+
+    for i in range(robots):
+        look(i)
+    while not all(done) and sum(driven) < budget_m * robots:
+        for i in range(robots):
+            if done[i]:
+                continue
+            if paths[i] is None:
+                pos = np.array([s[0] for s in scans])
+                grid = build_logodds(truth.grid.shape, truth.origin, truth.resolution, pos, np.tile(angles, (len(pos), 1)),
+                                     np.array([s[1] for s in scans]), np.array([s[2] for s in scans]))
+                if policy == "frontier":
+                    goal = frontier_goal(i, poses[i], grid, claims)
+                else:
+                    # (a model's stand-in: the log-odds grid's belief, unsure where no beam reached)
+                    std = np.where(grid.known(), 0.0, 0.5).astype(np.float32)
+                    goal = uncertainty_goal(i, poses[i], grid.probability(), std, truth.origin, truth.resolution, claims,
+                                            sensor=SENSOR, min_gain=2.0)
+                if goal is None:
+                    done[i] = True
+                    claims.held.pop(i, None)
+                    continue
+                claims.held[i], paths[i] = goal.xy, goal.path
+            length = path_length(paths[i])
+            nxt, _ = point_along(paths[i], min(step, length))
+            driven[i] += float(np.linalg.norm(nxt - poses[i]))
+            poses[i] = nxt
+            in_wall |= bool(truth.occupied(poses[i][None]).any())
+            look(i)
+            paths[i] = None if length <= step else np.vstack([nxt[None], rest_of(paths[i], step)])
+        history.append((cov.fraction(), sum(driven)))
+    return history, in_wall
+
+
+def rest_of(path: np.ndarray, s: float) -> np.ndarray:
+    """The waypoints of ``path`` beyond arc length ``s``."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    return path[1:][np.cumsum(seg) > s]
+
+
+@pytest.mark.parametrize("policy", ["frontier", "uncertainty"])
+def test_a_team_of_three_covers_the_building_by_either_policy(truth, policy):
+    history, in_wall = explore(truth, policy, robots=3, seed=2)
+    coverage, distance = np.array(history).T
+    assert not in_wall
+    assert coverage[-1] >= 0.9, f"{policy}: coverage {coverage[-1]:.2f} after {distance[-1]:.0f} m"
+    assert (np.diff(coverage) >= 0).all()
+    reached = distance_at(coverage, distance)
+    assert reached["0.5"] is not None and reached["0.5"] <= reached["0.9"]
