@@ -5,8 +5,9 @@ round waits for (``active``): one whose liveliness token vanished (and did not c
 ``rejoin_wait`` seconds, the time a launcher needs to restart it), that stayed silent for
 ``silent_after`` seconds while this node waited on it (silent: no step forward, whatever it
 repeats; COMPLETE_WAIT times as long while it owes the RoundComplete of a round whose State this
-node took: it may be waiting ``silent_after`` for a neighbour of its own, and this node may have
-moved on meanwhile), or
+node took, NEXT_STATE_WAIT times once it completed a round and owes its next State: it may itself
+be waiting on a silent neighbour, or on one that owes its RoundComplete, and this node may have
+moved on meanwhile: the wait must not spread to it), or
 that sent only States this node refuses for that long, is left out, and the round finishes
 with the neighbours the node has. It is taken back once its State of the round at hand is here
 (one of a later round alone brings it back at that round, not before), except the
@@ -49,6 +50,7 @@ Clip = Callable[[np.ndarray, np.ndarray], np.ndarray]  # clip(theirs, own): thei
 REUNION_ROUNDS = 50  # rounds after a neighbour's return in which its far States are pulled in, not refused
 REFUSED_OUT_FOR_GOOD = 2  # left out this often for sending only refused States: left out for the rest of the run
 COMPLETE_WAIT = 2  # a neighbour that owes the RoundComplete of a State taken has this many times silent_after for it
+NEXT_STATE_WAIT = 3  # one that completed a round and owes its next State (it may wait COMPLETE_WAIT for another)
 RESEND_BACKOFF = 8  # a round's messages go again after resend_after seconds, then twice as long, up to 8 times it
 
 
@@ -111,12 +113,14 @@ class Reunion:
 
 
 class Progress:
-    """When each neighbour last moved forward (a State taken, or the RoundComplete of one), which
-    RoundComplete it owes, and since when it has sent only States this node refuses."""
+    """When each neighbour last moved forward (a State taken, or the RoundComplete of one), what it
+    owes (the RoundComplete of a State taken, or the State after a RoundComplete), and since when it
+    has sent only States this node refuses."""
 
     def __init__(self, neighbours: set[int]):
         self.heard = dict.fromkeys(neighbours, time.monotonic())  # the last step forward of each neighbour
         self.owes: dict[int, int] = {}  # per neighbour: the round of its State taken whose RoundComplete has not come
+        self.between: set[int] = set()  # neighbours that completed a round whose next State has not come
         self.refused_since: dict[int, float] = {}  # per neighbour: its first refused State since one this node took
 
     def heard_from(self, j: int, now: float) -> None:
@@ -126,13 +130,25 @@ class Progress:
         """``j``'s State of round ``r`` was taken: a step forward; its RoundComplete of ``r`` is owed."""
         self.heard[j] = now
         self.owes[j] = max(self.owes.get(j, r), r)
+        self.between.discard(j)
 
     def completed(self, j: int, r: int, now: float) -> None:
         """``j``'s RoundComplete of round ``r``: a step forward where it completes a State taken
         (whatever round this node is at: one that moved on still hears it finish)."""
         if self.owes.get(j, r + 1) <= r:
             del self.owes[j]
+            self.between.add(j)
             self.heard[j] = now
+
+    def patience(self, j: int) -> int:
+        """How many times ``silent_after`` neighbour ``j`` gets for its next step forward."""
+        return COMPLETE_WAIT if j in self.owes else NEXT_STATE_WAIT if j in self.between else 1
+
+    def forget(self, j: int) -> None:
+        """``j`` is left out: what it owed no longer counts (back, it starts afresh)."""
+        self.owes.pop(j, None)
+        self.between.discard(j)
+        self.refused_since.pop(j, None)
 
     def paused(self, busy: float) -> float:
         """Silence counts while the node listens, not while it computed (``busy`` s, returned: it waits in its inbox)."""
@@ -191,7 +207,7 @@ class Membership:
         self.banned.add(j)
         self.active.discard(j)
         self.returning.discard(j)
-        self.progress.refused_since.pop(j, None)
+        self.progress.forget(j)
         self.stats.refused[reason] += 1
         self.stats.refused_from[j] += 1
         self.stats.left_out += 1
@@ -199,7 +215,7 @@ class Membership:
 
     def leave_out(self, j: int, why: str, rnd: int) -> None:
         self.active.discard(j)
-        self.progress.refused_since.pop(j, None)
+        self.progress.forget(j)
         self.stats.left_out += 1
         log.warning("node %d: neighbour %d %s; round %d goes on without it", self.node_id, j, why, rnd)
 
@@ -256,25 +272,23 @@ class Membership:
     def check(self, needed: set[int], lost: set[int], rnd: int, now: float) -> None:
         """Leave out the neighbours of ``needed`` that are gone (``lost``), silent, or sending only
         refused States; fail with :class:`PeerFailure` when none has been left for ``peer_timeout``.
-        A neighbour is silent when it has not moved forward for ``silent_after`` seconds; while it
-        owes the RoundComplete of a State this node took, for COMPLETE_WAIT times that (it may
-        itself wait ``silent_after`` for a neighbour of its own before its update, and this node
-        may have gone on to the next round meanwhile: the wait must not spread to it)."""
+        A neighbour is silent when it has not moved forward for ``silent_after`` seconds, or for
+        :meth:`Progress.patience` times that once it takes part (it may itself wait on a neighbour
+        of its own, and this node may have gone on to the next round meanwhile: the wait must not
+        spread to it)."""
         self.lost_since = {j: self.lost_since.get(j, now) for j in lost}
         r, p = self.rules, self.progress
         for j in sorted(needed & self.active):
-            owed = j in p.owes
-            silent_after = r.silent_after * (COMPLETE_WAIT if owed else 1)
+            owed, silent_after = j in p.owes, r.silent_after * p.patience(j)
             if j in lost and now - self.lost_since[j] >= r.rejoin_wait:
                 self.leave_out(j, "left (its liveliness token vanished)" + (
                     f" and is not back after {r.rejoin_wait:.0f} s" if r.rejoin_wait else ""), rnd)
                 self.reunion.away.add(j)
-                p.owes.pop(j, None)  # (a restarted node computes its rounds anew)
             elif now - p.refused_since.get(j, now) > r.silent_after:  # it talks, but only in refused States
                 why = f"has sent only States this node refuses for {now - p.refused_since[j]:.0f} s"
                 self.out_again(j, why, rnd, "refused")
             elif now - p.heard[j] > silent_after and owed:  # its State was taken, its RoundComplete never came
-                self.out_again(j, f"sent its State of round {p.owes.pop(j)} but no RoundComplete for "
+                self.out_again(j, f"sent its State of round {p.owes[j]} but no RoundComplete for "
                                   f"{now - p.heard[j]:.0f} s", rnd, "incomplete", self.refusals_out.get((j, "silent"), 0))
             elif now - p.heard[j] > silent_after:
                 self.refusals_out[(j, "silent")] = self.refusals_out.get((j, "silent"), 0) + 1

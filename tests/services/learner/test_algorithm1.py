@@ -469,6 +469,42 @@ def test_on_a_ring_the_wait_for_a_silent_member_does_not_spread_to_the_next_hop(
     assert all(stats[i].rounds_done == 4 for i in honest)
 
 
+def test_a_node_that_moves_on_after_a_long_wait_does_not_leave_out_its_waiting_neighbours(caplog):
+    """A complete graph of five whose member 4 repeats its State of round 0 and never completes:
+    every honest node waits COMPLETE_WAIT x silent_after for its RoundComplete, then goes on to
+    round 1 and waits for the others' States of round 1 while their last word (their
+    RoundComplete of round 0) is that long ago (here their States of round 1 reach node 0 0.7 s
+    late: a busy host, a slow link): a neighbour that completed a round gets NEXT_STATE_WAIT x
+    silent_after for its next State, so only member 4 is ever left out."""
+    graph = {i: set(range(5)) - {i} for i in range(5)}
+    hub = MemoryHub(graph, lambda sender, receiver, env: 0.7 if (receiver, env.kind, env.round) == (0, "state", 1) else 0.0)
+    done = threading.Event()
+
+    def repeat():
+        while not done.is_set():
+            for q in range(4):
+                hub.queues[q].put(Envelope("state", 4, 0, np.full(4, 2.0)))
+            done.wait(0.05)
+
+    honest = (0, 1, 2, 3)
+    stats, results = {i: ExchangeStats() for i in honest}, {}
+
+    def node(i):
+        results[i] = run_algorithm1(i, graph[i], 4, np.full(4, float(i)), mixing_update(i), hub.transport(i),
+                                    resend_after=0.3, linger=0.2, stats=stats[i], silent_after=1.0, peer_timeout=20)
+
+    threads = [threading.Thread(target=repeat)] + [threading.Thread(target=node, args=(i,)) for i in honest]
+    for t in threads:
+        t.start()
+    for t in threads[1:]:
+        t.join(30)
+    done.set()
+    threads[0].join(5)
+    assert set(results) == set(honest)
+    assert {i: stats[i].left_out for i in honest} == dict.fromkeys(honest, 1), caplog.text
+    assert "neighbour 4 sent its State of round 0 but no RoundComplete" in caplog.text
+
+
 def run_clocked(graph, rounds, init, every_s, round_s=0.005, **kw):
     """run_timed for every node of ``graph`` in threads; each round takes ``round_s`` of compute
     (``rounds`` may be a dict: node -> its rounds). Returns results, stats, States sent per node."""

@@ -25,23 +25,26 @@ def test_a_neighbour_left_out_again_for_refused_states_stays_out(caplog):
     assert "for the 2nd time; it is left out for the rest of the run" in caplog.text
 
 
-def test_silence_is_no_step_forward_and_a_round_complete_gets_longer():
+def test_silence_is_no_step_forward_and_a_neighbour_that_takes_part_gets_longer():
     """A neighbour not heard (no step forward) for silent_after is left out; once a State of it
-    was taken, only after COMPLETE_WAIT x silent_after without its RoundComplete, whatever round
-    this node is at (on a ring, a node that went on to the next round must not leave out the
-    neighbour that waits for a silent member of its own); the RoundComplete is a step forward."""
-    from swarmmap.services.learner.membership import COMPLETE_WAIT
+    was taken, only after COMPLETE_WAIT x silent_after without its RoundComplete, and after
+    NEXT_STATE_WAIT x silent_after without its next State once it completed, whatever round this
+    node is at (on a ring, a node that went on to the next round must not leave out the neighbour
+    that waits for a silent member of its own, or for one that owes its RoundComplete)."""
+    from swarmmap.services.learner.membership import COMPLETE_WAIT, NEXT_STATE_WAIT
 
     m = Membership(0, {1, 2, 3}, ExchangeRules(silent_after=1.0), ExchangeStats())
     for j in (1, 2, 3):
         m.progress.took_state(j, 0, now=0.0)
-    m.progress.completed(3, 0, now=1.0)  # (3 finished round 0: it owes nothing, and was heard at 1.0)
+    m.progress.completed(3, 0, now=1.0)  # (3 finished round 0: it owes its State of round 1, heard at 1.0)
     m.check({1, 2, 3}, set(), rnd=1, now=1.5)
     assert m.active == {1, 2, 3}
     m.progress.completed(2, 0, now=1.8)
     m.check({1, 2, 3}, set(), rnd=1, now=COMPLETE_WAIT * 1.0 + 0.1)
-    assert m.active == {2}
-    assert m.progress.owes == {} and m.stats.refused["incomplete"] == 0 and m.refusals_out == {(1, "incomplete"): 1, (3, "silent"): 1}
+    assert m.active == {2, 3} and m.refusals_out == {(1, "incomplete"): 1}
+    m.check({2, 3}, set(), rnd=1, now=1.0 + NEXT_STATE_WAIT * 1.0 + 0.1)
+    assert m.active == {2} and m.refusals_out == {(1, "incomplete"): 1, (3, "silent"): 1}
+    assert m.progress.owes == {} and m.progress.between == {2} and m.stats.refused["incomplete"] == 0
     m2 = Membership(0, {1}, ExchangeRules(silent_after=1.0), ExchangeStats())
     m2.progress.heard = {1: 0.0}
     m2.check({1}, set(), rnd=0, now=1.5)
