@@ -23,8 +23,10 @@ start) that any robot's beams have crossed.
 
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -288,3 +290,63 @@ def parse_starts(text: str, robots: int) -> np.ndarray:
             raise ValueError(f"--starts: {p!r} is not finite")
         out.append((x, y))
     return np.array(out, dtype=np.float64)
+
+
+EXPLORATION_COLUMNS = ("robot", "sim_time_s", "x", "y", "distance_m", "coverage", "val_bce")
+
+
+class ExplorationLog:
+    """``exploration.csv``: one row per robot per scan (:data:`EXPLORATION_COLUMNS`; metres in the
+    plan's frame, ``distance_m`` driven so far, ``coverage`` the team's so far, the robot's latest
+    ``val_bce``), appended and flushed row by row: a resumed run goes on where it was, a crash
+    loses at most the row being written (:func:`read_exploration` skips a torn last line)."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        fresh = not self.path.exists() or self.path.stat().st_size == 0
+        self.file = self.path.open("a", encoding="utf-8", newline="")
+        if fresh:
+            self.file.write(",".join(EXPLORATION_COLUMNS) + "\n")
+            self.file.flush()
+
+    def row(self, robot: int, sim_time_s: float, xy: np.ndarray, distance_m: float, coverage: float,
+            val_bce: float | None) -> None:
+        bce = "" if val_bce is None or not math.isfinite(val_bce) else f"{val_bce:.6f}"
+        self.file.write(f"{robot},{sim_time_s:.3f},{xy[0]:.4f},{xy[1]:.4f},{distance_m:.4f},{coverage:.6f},{bce}\n")
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_exploration(path: Path | str) -> list[dict[str, float]]:
+    """The rows of an ``exploration.csv`` (numbers; ``val_bce`` NaN where none yet), a torn last line skipped."""
+    rows = []
+    with Path(path).open(encoding="utf-8", newline="") as f:
+        reader = csv.DictReader(f)
+        if tuple(reader.fieldnames or ()) != EXPLORATION_COLUMNS:
+            raise ValueError(f"{path}: not an exploration.csv (columns {reader.fieldnames})")
+        for line in reader:
+            try:
+                row = {k: float(line[k]) if line[k] not in ("", None) else math.nan for k in EXPLORATION_COLUMNS}
+            except (TypeError, ValueError):
+                continue  # (a row cut short by a crash)
+            if any(line[k] is None for k in EXPLORATION_COLUMNS):
+                continue
+            rows.append(row)
+    return rows
+
+
+def exploration_summary(rows: list[dict[str, float]], policy: str) -> dict:
+    """``summary.json``'s ``exploration`` section from :func:`read_exploration`'s rows: each
+    robot's distance, the team's, the final coverage and the team distance at which coverage first
+    reached 0.5, 0.8, 0.9 and 0.95 (None where never)."""
+    latest: dict[int, float] = {}
+    team, cov = [], []
+    for row in rows:
+        latest[int(row["robot"])] = row["distance_m"]
+        team.append(sum(latest.values()))
+        cov.append(row["coverage"])
+    return {"policy": policy, "robot_distance_m": {str(r): round(d, 3) for r, d in sorted(latest.items())},
+            "team_distance_m": round(sum(latest.values()), 3), "final_coverage": round(cov[-1], 4) if cov else 0.0,
+            "team_distance_at_coverage": distance_at(np.array(cov), np.array(team))}

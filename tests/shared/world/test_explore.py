@@ -169,3 +169,26 @@ def test_a_team_of_three_covers_the_building_by_either_policy(truth, policy):
     assert (np.diff(coverage) >= 0).all()
     reached = distance_at(coverage, distance)
     assert reached["0.5"] is not None and reached["0.5"] <= reached["0.9"]
+
+
+def test_the_exploration_log_appends_survives_a_torn_line_and_sums_up(tmp_path):
+    from swarmmap.shared.world.explore import ExplorationLog, exploration_summary, read_exploration
+
+    path = tmp_path / "exploration.csv"
+    log = ExplorationLog(path)
+    log.row(0, 0.0, np.array([1.0, 2.0]), 0.0, 0.10, None)
+    log.row(1, 0.0, np.array([5.0, 2.0]), 0.0, 0.20, 0.7)
+    log.close()
+    log = ExplorationLog(path)  # (a resumed run appends)
+    log.row(0, 1.0, np.array([2.0, 2.0]), 1.0, 0.55, 0.5)
+    log.row(1, 1.0, np.array([5.0, 4.0]), 2.0, 0.85, 0.4)
+    log.close()
+    with path.open("a") as f:
+        f.write("0,2.0,3.0")  # a crash mid-row
+    rows = read_exploration(path)
+    assert len(rows) == 4 and np.isnan(rows[0]["val_bce"]) and rows[3]["val_bce"] == 0.4
+    s = exploration_summary(rows, "frontier")
+    assert s["robot_distance_m"] == {"0": 1.0, "1": 2.0} and s["team_distance_m"] == 3.0
+    assert s["final_coverage"] == 0.85
+    assert s["team_distance_at_coverage"] == {"0.5": 1.0, "0.8": 3.0, "0.9": None, "0.95": None}
+    assert path.read_text().count("robot,sim_time_s") == 1
