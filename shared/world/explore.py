@@ -350,3 +350,63 @@ def exploration_summary(rows: list[dict[str, float]], policy: str) -> dict:
     return {"policy": policy, "robot_distance_m": {str(r): round(d, 3) for r, d in sorted(latest.items())},
             "team_distance_m": round(sum(latest.values()), 3), "final_coverage": round(cov[-1], 4) if cov else 0.0,
             "team_distance_at_coverage": distance_at(np.array(cov), np.array(team))}
+
+
+def path_blocked(pose: np.ndarray, path: np.ndarray, hits: np.ndarray, clearance: float, lookahead: float) -> bool:
+    """Whether the next ``lookahead`` metres of ``path`` from ``pose`` pass within ``clearance`` of a
+    LiDAR return ``hits`` (K, 2): the learned map was wrong there, the robot must re-plan."""
+    if len(hits) == 0 or len(path) == 0:
+        return False
+    route = np.vstack([np.asarray(pose, np.float64)[None], path])
+    seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+    n = max(2, int(min(lookahead, seg.sum()) / (clearance / 2)) + 1)
+    s = np.linspace(0.0, min(lookahead, seg.sum()), n)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    frac = np.where(seg[i] > 0, (s - cum[i]) / np.where(seg[i] > 0, seg[i], 1.0), 0.0)
+    pts = route[i] + frac[:, None] * (route[i + 1] - route[i])
+    d = np.linalg.norm(pts[:, None, :] - np.asarray(hits, np.float64)[None, :, :], axis=-1)
+    return bool((d < clearance).any())
+
+
+@dataclass
+class Drive:
+    """A robot following its path at ``speed`` m/s of simulated time. Each step it looks at its
+    real LiDAR first: a return within ``clearance`` of the path ahead stops it where it is
+    (``blocked``; its policy re-plans with what the scan showed), so it never drives into a wall
+    its learned map missed."""
+
+    pose: np.ndarray
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    speed: float = 0.25
+    clearance: float = 0.15
+    lookahead: float = 0.6
+    driven: float = 0.0
+    blocked: bool = False
+
+    def follow(self, path: np.ndarray) -> None:
+        self.path, self.blocked = np.asarray(path, np.float64).reshape(-1, 2), False
+
+    @property
+    def arrived(self) -> bool:
+        return len(self.path) == 0
+
+    def step(self, dt: float, hits: np.ndarray) -> np.ndarray:
+        """Move up to ``speed * dt`` metres along the path unless ``hits`` (the LiDAR returns seen
+        from here, (K, 2) metres) block it; the new pose."""
+        if self.arrived or self.blocked:
+            return self.pose
+        if path_blocked(self.pose, self.path, hits, self.clearance, self.lookahead):
+            self.blocked = True
+            return self.pose
+        left = self.speed * dt
+        while left > 0 and len(self.path):
+            gap = float(np.linalg.norm(self.path[0] - self.pose))
+            if gap <= left:
+                self.pose, left, self.path = self.path[0].copy(), left - gap, self.path[1:]
+                self.driven += gap
+            else:
+                self.pose = self.pose + (self.path[0] - self.pose) * (left / gap)
+                self.driven += left
+                left = 0.0
+        return self.pose

@@ -192,3 +192,20 @@ def test_the_exploration_log_appends_survives_a_torn_line_and_sums_up(tmp_path):
     assert s["final_coverage"] == 0.85
     assert s["team_distance_at_coverage"] == {"0.5": 1.0, "0.8": 3.0, "0.9": None, "0.95": None}
     assert path.read_text().count("robot,sim_time_s") == 1
+
+
+def test_a_drive_follows_its_path_and_stops_before_a_wall_its_map_missed():
+    from swarmmap.shared.world.explore import Drive
+
+    d = Drive(np.array([0.0, 0.0]), speed=0.5)
+    d.follow(np.array([[1.0, 0.0], [1.0, 1.0]]))
+    d.step(1.0, np.zeros((0, 2)))
+    assert np.allclose(d.pose, [0.5, 0.0]) and d.driven == pytest.approx(0.5)
+    d.step(3.0, np.zeros((0, 2)))  # (1.5 m left, 1.5 m of drive: it arrives)
+    assert d.arrived and np.allclose(d.pose, [1.0, 1.0]) and d.driven == pytest.approx(2.0)
+    d.follow(np.array([[3.0, 1.0]]))
+    wall = np.stack([np.full(11, 1.4), np.linspace(0.5, 1.5, 11)], axis=1)  # a wall 0.4 m ahead, across the path
+    d.step(1.0, wall)
+    assert d.blocked and np.allclose(d.pose, [1.0, 1.0]), "it stops rather than drive into the wall"
+    d.step(1.0, wall)
+    assert np.allclose(d.pose, [1.0, 1.0]) and d.driven == pytest.approx(2.0)
