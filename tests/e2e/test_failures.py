@@ -59,24 +59,34 @@ def test_a_killed_launcher_takes_every_service_with_it(tmp_path):
     assert wait_until(lambda: not leftovers(run_dir), 30, 0.2), f"left running: {leftovers(run_dir)}"
 
 
-@pytest.mark.faults
-@pytest.mark.parametrize("trial", range(5))
-def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishes(tmp_path_factory, trial):
-    rounds = 200
-    base = tmp_path_factory.getbasetemp() / "kill-trials"
-    clean_dir = base / "clean"
-    if not (clean_dir / "summary.json").exists():  # one clean run for the five trials
+def clean_kill_run(tmp_path_factory, rounds: int):
+    """One clean smoke run of ``rounds`` rounds for every kill trial of the session; its directory."""
+    clean_dir = tmp_path_factory.getbasetemp() / "kill-trials" / "clean"
+    if not (clean_dir / "summary.json").exists():
         assert up(clean_dir, *SMOKE, "--rounds", str(rounds)).wait(600) == 0
-    rng = random.Random(trial)
-    robot, at, after = rng.randrange(3), rng.randrange(10, rounds - 40), rng.uniform(0, 1.5)
-    run_dir = base / f"trial-{trial}"
-    proc = up(run_dir, *SMOKE, "--rounds", str(rounds))
+    return clean_dir
+
+
+def run_killed(run_dir, robot: int, at: int, after: float, *args: str) -> None:
+    """A smoke run whose learner ``robot`` is killed ``after`` seconds after it reported round ``at``; it must end ok."""
+    proc = up(run_dir, *SMOKE, *args)
     try:
         kill_at_round(run_dir, "learner", robot, at, after_s=after)
         assert proc.wait(600) == 0, (run_dir.parent / f"{run_dir.name}.up.log").read_text()[-3000:]
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize("trial", range(5))
+def test_a_learner_killed_at_a_random_round_restarts_rejoins_and_the_run_finishes(tmp_path_factory, trial):
+    rounds = 200
+    clean_dir = clean_kill_run(tmp_path_factory, rounds)
+    rng = random.Random(trial)
+    robot, at, after = rng.randrange(3), rng.randrange(10, rounds - 40), rng.uniform(0, 1.5)
+    run_dir = clean_dir.parent / f"trial-{trial}"
+    run_killed(run_dir, robot, at, after, "--rounds", str(rounds))
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["ok"] and summary["services"][f"learner-{robot}"]["restarts"] == 1
     log = (run_dir / "logs" / f"learner-{robot}.log").read_text()
@@ -96,18 +106,9 @@ def test_a_learner_killed_near_the_end_replays_the_rounds_it_lost_from_its_finis
     finished neighbours send it their States of the rounds it lost, it replays them and finishes,
     and the run is ok."""
     rounds, robot = 200, 2
-    base = tmp_path_factory.getbasetemp() / "kill-trials"
-    clean_dir = base / "clean"
-    if not (clean_dir / "summary.json").exists():
-        assert up(clean_dir, *SMOKE, "--rounds", str(rounds)).wait(600) == 0
-    run_dir = base / "near-the-end"
-    proc = up(run_dir, *SMOKE, "--rounds", str(rounds), "--set", "learner.rejoin_wait_s=0")
-    try:
-        kill_at_round(run_dir, "learner", robot, rounds - 5)
-        assert proc.wait(600) == 0, (run_dir.parent / f"{run_dir.name}.up.log").read_text()[-3000:]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    clean_dir = clean_kill_run(tmp_path_factory, rounds)
+    run_dir = clean_dir.parent / "near-the-end"
+    run_killed(run_dir, robot, rounds - 5, 0.0, "--rounds", str(rounds), "--set", "learner.rejoin_wait_s=0")
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["ok"] and summary["services"][f"learner-{robot}"]["restarts"] == 1
     log = (run_dir / "logs" / f"learner-{robot}.log").read_text()

@@ -368,52 +368,61 @@ def test_a_neighbour_whose_every_state_is_refused_is_left_out_and_the_rounds_go_
     assert "has sent only States this node refuses" in caplog.text
 
 
-def hostile_pair(send, silent_after=1.0, rounds=5):
-    """Nodes 0 and 1 run ``rounds`` rounds of a triangle whose third member (2) only does what
-    ``send(queue)`` puts in their inboxes (every 50 ms). Returns their results, stats and the wall time."""
-    graph = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
-    hub = MemoryHub(graph)
+def team_with_member(graph, member, says, silent_after, delay=None, rounds=4, init=None, **rules):
+    """The honest nodes of ``graph`` run ``rounds`` rounds while ``member`` only puts what
+    ``says(round)`` gives (Envelopes, every 50 ms, the round counting up) in its neighbours'
+    inboxes; ``silent_after(node)`` per honest node, ``init(node)`` its start. Every honest node
+    must finish its rounds; returns their stats."""
+    hub = MemoryHub(graph, delay)
     done = threading.Event()
+    honest = sorted(set(graph) - {member})
+    stats, results = {i: ExchangeStats() for i in honest}, {}
 
-    def hostile():
+    def speak():
+        r = 0
         while not done.is_set():
-            for q in (0, 1):
-                send(hub.queues[q])
+            for q in graph[member]:
+                for env in says(r):
+                    hub.queues[q].put(env)
+            r += 1
             done.wait(0.05)
 
-    init = {i: np.linspace(1, 2, 8) + 0.01 * i for i in (0, 1)}
-    stats, results = {0: ExchangeStats(), 1: ExchangeStats()}, {}
-
     def node(i):
-        results[i] = run_algorithm1(i, graph[i], rounds, init[i], mixing_update(i), hub.transport(i), resend_after=0.2,
-                                    linger=0.2, stats=stats[i], silent_after=silent_after, peer_timeout=20,
-                                    check_state=lambda theirs, own: implausible(theirs, own, 0.5))
+        start = init(i) if init is not None else np.full(4, float(i))
+        results[i] = run_algorithm1(i, graph[i], rounds, start, mixing_update(i), hub.transport(i),
+                                    **{"resend_after": 0.3, "linger": 0.2, "peer_timeout": 20, **rules},
+                                    stats=stats[i], silent_after=silent_after(i))
 
-    threads = [threading.Thread(target=hostile)] + [threading.Thread(target=node, args=(i,)) for i in (0, 1)]
-    t0 = time.monotonic()
+    threads = [threading.Thread(target=speak)] + [threading.Thread(target=node, args=(i,)) for i in honest]
     for t in threads:
         t.start()
     for t in threads[1:]:
         t.join(30)
-    wall = time.monotonic() - t0
     done.set()
     threads[0].join(5)
-    return results, stats, wall
+    assert set(results) == set(honest), "an honest node did not finish"
+    assert all(stats[i].rounds_done == rounds for i in honest)
+    return stats
+
+
+def hostile_pair(says, silent_after=1.0, rounds=5):
+    """Nodes 0 and 1 run ``rounds`` rounds of a triangle whose third member (2) only sends what
+    ``says(round)`` gives; their stats."""
+    return team_with_member({0: {1, 2}, 1: {0, 2}, 2: {0, 1}}, 2, says, lambda i: silent_after, rounds=rounds,
+                            init=lambda i: np.linspace(1, 2, 8) + 0.01 * i, resend_after=0.2,
+                            check_state=lambda theirs, own: implausible(theirs, own, 0.5))
 
 
 def test_a_member_that_sends_only_far_future_states_is_silent_and_left_out(caplog):
     """States of rounds far ahead (and RoundCompletes without a State) are no step forward: the
     member is left out as silent, its States counted as refused, and the others finish."""
 
-    def send(q):
-        for r in range(50, 56):
-            q.put(Envelope("state", 2, r, np.linspace(1, 2, 8)))
-        for r in range(56):
-            q.put(Envelope("complete", 2, r))
+    def says(_):
+        return [Envelope("state", 2, r, np.linspace(1, 2, 8)) for r in range(50, 56)] + [
+            Envelope("complete", 2, r) for r in range(56)]
 
-    results, stats, _ = hostile_pair(send)
-    assert set(results) == {0, 1}
-    assert all(s.left_out == 1 and s.refused["far-future"] >= 1 and s.rounds_done == 5 for s in stats.values())
+    stats = hostile_pair(says)
+    assert all(s.left_out == 1 and s.refused["far-future"] >= 1 for s in stats.values())
     assert "neighbour 2 has been silent" in caplog.text
 
 
@@ -421,12 +430,8 @@ def test_a_member_that_repeats_its_state_without_a_round_complete_is_left_out(ca
     """A member whose State of round 0 comes again and again, never with a RoundComplete, is
     left out once COMPLETE_WAIT x silent_after has passed without one; the others finish."""
 
-    def send(q):
-        q.put(Envelope("state", 2, 0, np.linspace(1, 2, 8) + 0.02))
-
-    results, stats, _ = hostile_pair(send)
-    assert set(results) == {0, 1}
-    assert all(s.left_out == 1 and s.rounds_done == 5 for s in stats.values())
+    stats = hostile_pair(lambda _: [Envelope("state", 2, 0, np.linspace(1, 2, 8) + 0.02)])
+    assert all(s.left_out == 1 for s in stats.values())
     assert "neighbour 2 sent its State of round 0 but no RoundComplete" in caplog.text
 
 
@@ -438,35 +443,8 @@ def test_on_a_ring_the_wait_for_a_silent_member_does_not_spread_to_the_next_hop(
     later): by then node 4 has gone on to round 1 and waits for node 0's State of it. Every honest
     node finishes and only member 1 is ever left out."""
     ring = {i: {(i - 1) % 5, (i + 1) % 5} for i in range(5)}
-    hub = MemoryHub(ring)
-    done = threading.Event()
-
-    def stall():
-        r = 0
-        while not done.is_set():
-            for q in (0, 2):
-                hub.queues[q].put(Envelope("complete", 1, r))
-            r += 1
-            done.wait(0.05)
-
-    honest = (0, 2, 3, 4)
-    stats, results = {i: ExchangeStats() for i in honest}, {}
-
-    def node(i):
-        results[i] = run_algorithm1(i, ring[i], 4, np.full(4, float(i)), mixing_update(i), hub.transport(i),
-                                    resend_after=0.3, linger=0.2, stats=stats[i], silent_after=1.3 if i == 0 else 1.0,
-                                    peer_timeout=20)
-
-    threads = [threading.Thread(target=stall)] + [threading.Thread(target=node, args=(i,)) for i in honest]
-    for t in threads:
-        t.start()
-    for t in threads[1:]:
-        t.join(30)
-    done.set()
-    threads[0].join(5)
-    assert set(results) == set(honest)
-    assert {i: stats[i].left_out for i in honest} == {0: 1, 2: 1, 3: 0, 4: 0}, caplog.text
-    assert all(stats[i].rounds_done == 4 for i in honest)
+    stats = team_with_member(ring, 1, lambda r: [Envelope("complete", 1, r)], lambda i: 1.3 if i == 0 else 1.0)
+    assert {i: s.left_out for i, s in stats.items()} == {0: 1, 2: 1, 3: 0, 4: 0}, caplog.text
 
 
 def test_a_node_that_moves_on_after_a_long_wait_does_not_leave_out_its_waiting_neighbours(caplog):
@@ -477,31 +455,9 @@ def test_a_node_that_moves_on_after_a_long_wait_does_not_leave_out_its_waiting_n
     late: a busy host, a slow link): a neighbour that completed a round gets NEXT_STATE_WAIT x
     silent_after for its next State, so only member 4 is ever left out."""
     graph = {i: set(range(5)) - {i} for i in range(5)}
-    hub = MemoryHub(graph, lambda sender, receiver, env: 0.7 if (receiver, env.kind, env.round) == (0, "state", 1) else 0.0)
-    done = threading.Event()
-
-    def repeat():
-        while not done.is_set():
-            for q in range(4):
-                hub.queues[q].put(Envelope("state", 4, 0, np.full(4, 2.0)))
-            done.wait(0.05)
-
-    honest = (0, 1, 2, 3)
-    stats, results = {i: ExchangeStats() for i in honest}, {}
-
-    def node(i):
-        results[i] = run_algorithm1(i, graph[i], 4, np.full(4, float(i)), mixing_update(i), hub.transport(i),
-                                    resend_after=0.3, linger=0.2, stats=stats[i], silent_after=1.0, peer_timeout=20)
-
-    threads = [threading.Thread(target=repeat)] + [threading.Thread(target=node, args=(i,)) for i in honest]
-    for t in threads:
-        t.start()
-    for t in threads[1:]:
-        t.join(30)
-    done.set()
-    threads[0].join(5)
-    assert set(results) == set(honest)
-    assert {i: stats[i].left_out for i in honest} == dict.fromkeys(honest, 1), caplog.text
+    late = lambda sender, receiver, env: 0.7 if (receiver, env.kind, env.round) == (0, "state", 1) else 0.0  # noqa: E731
+    stats = team_with_member(graph, 4, lambda r: [Envelope("state", 4, 0, np.full(4, 2.0))], lambda i: 1.0, late)
+    assert {i: s.left_out for i, s in stats.items()} == dict.fromkeys(range(4), 1), caplog.text
     assert "neighbour 4 sent its State of round 0 but no RoundComplete" in caplog.text
 
 
