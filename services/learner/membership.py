@@ -12,8 +12,8 @@ that sent only States this node refuses for that long, is left out, and the roun
 with the neighbours the node has. It is taken back once its State of the round at hand is here
 (one of a later round alone brings it back at that round, not before), except the
 REFUSED_OUT_FOR_GOOD-th time it is left out for refused States, or for a State whose
-RoundComplete never came (an honest node always completes the round it sent a State for, unless
-it is gone): then for good (each return cost the team ``silent_after`` again, and on a sparse
+RoundComplete never came (counting its silences before: an honest node always completes the
+round it sent a State for, unless it is gone): then for good (each return cost the team ``silent_after`` again, and on a sparse
 graph the wait spreads to the neighbours' own neighbours).
 Silence is counted while the node waits, not while it computes (:meth:`Progress.paused`).
 
