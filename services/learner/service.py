@@ -435,9 +435,9 @@ def answer_behind(me: RobotLearner, transport: Transport, final_round: int, unti
     """A finished learner listens until ``until``: a neighbour that restarted behind it (its
     liveliness token vanished, then a State of an earlier round) gets this node's States of the
     rounds it replays, as during training (:class:`Replay`). Returns whether the run was stopped."""
+    if me.replay is None:  # (the clock mode replays nothing)
+        return stop.wait(max(0.0, until - time.monotonic()))
     while not stop.is_set() and (left := until - time.monotonic()) > 0:
-        if me.replay is None:
-            return stop.wait(left)
         me.replay.forget(transport.lost_peers())
         msg = transport.receive(timeout=min(left, CHECK_EVERY_S))
         if msg is None or msg.kind != "state" or msg.sender not in me.neighbours:

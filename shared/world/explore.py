@@ -34,7 +34,7 @@ from scipy.sparse import csgraph
 
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid
-from swarmmap.shared.world.paths import GridPlanner
+from swarmmap.shared.world.paths import GridPlanner, reachable_cells
 from swarmmap.shared.world.sensing import beam_angles
 
 POLICIES = ("uncertainty", "frontier", "planned")
@@ -89,17 +89,18 @@ def start_cell(planner: GridPlanner, start: np.ndarray, within: float = 0.5) -> 
     return int(rows[r, c] * planner.shape[1] + cols[r, c])
 
 
-def path_costs(planner: GridPlanner, start: np.ndarray) -> np.ndarray:
-    """Path length (metres, weighted away from walls) from ``start`` to every cell; inf where none."""
+def path_costs(planner: GridPlanner, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Path length (metres, weighted away from walls) from ``start`` to every cell (inf where
+    none), and each cell's predecessor on its path (for :func:`path_to`)."""
     cell = start_cell(planner, start)
     if cell is None:
-        return np.full(planner.shape[0] * planner.shape[1], np.inf)
-    return csgraph.dijkstra(planner.graph, indices=cell)
+        n = planner.shape[0] * planner.shape[1]
+        return np.full(n, np.inf), np.full(n, -9999)
+    return csgraph.dijkstra(planner.graph, indices=cell, return_predecessors=True)
 
 
-def path_to(planner: GridPlanner, start: np.ndarray, goal_cell: int) -> np.ndarray:
-    """The shortened path (K, 2) from ``start`` to ``goal_cell`` (reachable: see :func:`path_costs`)."""
-    _, pred = csgraph.dijkstra(planner.graph, indices=start_cell(planner, start), return_predecessors=True)
+def path_to(planner: GridPlanner, start: np.ndarray, pred: np.ndarray, goal_cell: int) -> np.ndarray:
+    """The shortened path (K, 2) from ``start`` to ``goal_cell`` along :func:`path_costs`' predecessors."""
     cells = [goal_cell]
     while pred[cells[-1]] >= 0:
         cells.append(int(pred[cells[-1]]))
@@ -113,6 +114,7 @@ def seen_cells(occupied: np.ndarray, origin: tuple[float, float], resolution: fl
     """(K, H*W) bool: the cells a scan from each of ``points`` would cross on the grid ``occupied``
     (H, W bool) within range, up to and including the first occupied cell of each beam."""
     h, w = occupied.shape
+    grid = OccupancyGrid(occupied, resolution, origin)
     angles = beam_angles(sensor.beams)
     step = resolution / 2
     t = np.arange(0.0, sensor.max_range + step, step)
@@ -121,10 +123,7 @@ def seen_cells(occupied: np.ndarray, origin: tuple[float, float], resolution: fl
     for s in range(0, len(points), chunk):
         p = np.asarray(points[s : s + chunk], np.float64)
         pts = p[:, None, None, :] + t[None, None, :, None] * d[None, :, None, :]  # (n, B, T, 2)
-        cols = np.floor((pts[..., 0] - origin[0]) / resolution).astype(np.int64)
-        rows = np.floor((pts[..., 1] - origin[1]) / resolution).astype(np.int64)
-        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        rows, cols = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
+        rows, cols, inside = grid.cells(pts)
         blocked = occupied[rows, cols] | ~inside
         before = np.cumsum(blocked, axis=2) - blocked  # occupied cells strictly before each step
         keep = inside & (before == 0)
@@ -154,7 +153,7 @@ def uncertainty_goal(me: int, pose: np.ndarray, mean: np.ndarray, std: np.ndarra
     """
     occupied = mean >= FREE_BELOW
     planner = GridPlanner(OccupancyGrid(occupied.astype(np.uint8), resolution, origin), clearance)
-    costs = path_costs(planner, pose)
+    costs, pred = path_costs(planner, pose)
     every = max(1, round(spacing / resolution))
     lattice = np.zeros_like(occupied)
     lattice[every // 2 :: every, every // 2 :: every] = True
@@ -170,7 +169,7 @@ def uncertainty_goal(me: int, pose: np.ndarray, mean: np.ndarray, std: np.ndarra
     best = int(np.argmax(score))
     if not np.isfinite(score[best]):
         return None
-    return Goal(tuple(map(float, points[best])), path_to(planner, pose, int(cells[best])), float(score[best]),
+    return Goal(tuple(map(float, points[best])), path_to(planner, pose, pred, int(cells[best])), float(score[best]),
                 f"{kind} {gain[best]:.1f} over {costs[cells[best]]:.1f} m")
 
 
@@ -190,7 +189,7 @@ def frontier_goal(me: int, pose: np.ndarray, grid: LogOddsGrid, claims: Claims, 
     if n == 0:
         return None
     planner = GridPlanner(OccupancyGrid((~free).astype(np.uint8), grid.resolution, grid.origin), clearance)
-    costs = path_costs(planner, pose)
+    costs, pred = path_costs(planner, pose)
     reach = (np.isfinite(costs) & planner.ok.ravel()).reshape(free.shape)
     margin = math.ceil(clearance / grid.resolution) + 2  # (unknown space counts as a wall: a frontier is never clear itself)
     options = []
@@ -213,7 +212,7 @@ def frontier_goal(me: int, pose: np.ndarray, grid: LogOddsGrid, claims: Claims, 
     if free_of_claims.any():
         options = [o for o, ok in zip(options, free_of_claims) if ok]
     cost, cell, xy, size = min(options, key=lambda o: (o[0], -o[3]))
-    return Goal((float(xy[0]), float(xy[1])), path_to(planner, pose, cell), -cost, f"frontier of {size} cells {cost:.1f} m away")
+    return Goal((float(xy[0]), float(xy[1])), path_to(planner, pose, pred, cell), -cost, f"frontier of {size} cells {cost:.1f} m away")
 
 
 class TeamCoverage:
@@ -259,14 +258,11 @@ def distance_at(coverage: np.ndarray, distance: np.ndarray, levels: tuple[float,
 def spread_starts(truth: OccupancyGrid, robots: int, seed: int, clearance: float = 0.3) -> np.ndarray:
     """Start positions (robots, 2) spread over the largest clear region of the plan by the seed:
     a random first cell, then each next the clear cell farthest (straight line) from those taken."""
-    planner_ok = truth.clearance() >= clearance
-    labels, n = ndimage.label(planner_ok, structure=np.ones((3, 3), bool))
-    if n == 0:
+    planner = GridPlanner(truth, clearance)
+    cells = np.flatnonzero(reachable_cells(planner))
+    if len(cells) == 0:
         raise ValueError("the plan has no cell clear of walls by %.2f m to start a robot in" % clearance)
-    main = np.bincount(labels[planner_ok]).argmax()
-    rows, cols = np.nonzero(labels == main)
-    res = truth.resolution
-    xy = np.stack([truth.origin[0] + (cols + 0.5) * res, truth.origin[1] + (rows + 0.5) * res], axis=1)
+    xy = planner.xy(cells)
     rng = np.random.default_rng(seed)
     picked = [int(rng.integers(len(xy)))]
     for _ in range(robots - 1):
@@ -327,13 +323,12 @@ def read_exploration(path: Path | str) -> list[dict[str, float]]:
         if tuple(reader.fieldnames or ()) != EXPLORATION_COLUMNS:
             raise ValueError(f"{path}: not an exploration.csv (columns {reader.fieldnames})")
         for line in reader:
-            try:
-                row = {k: float(line[k]) if line[k] not in ("", None) else math.nan for k in EXPLORATION_COLUMNS}
-            except (TypeError, ValueError):
-                continue  # (a row cut short by a crash)
             if any(line[k] is None for k in EXPLORATION_COLUMNS):
+                continue  # (a row cut short by a crash)
+            try:
+                rows.append({k: float(line[k]) if line[k] else math.nan for k in EXPLORATION_COLUMNS})
+            except ValueError:
                 continue
-            rows.append(row)
     return rows
 
 
