@@ -139,15 +139,15 @@ class LocalNode:
         a resumed run repeats the uninterrupted one)."""
         doc = {"gen": self.gen.get_state(), "noise": None if self.noise is None else self.noise.get_state()}
         if self.coverage is not None:
-            doc["coverage"] = self.coverage.others.copy()
+            doc["coverage"] = torch.from_numpy(self.coverage.others.copy())  # (a tensor: torch.load reads it with weights_only)
         return doc
 
     def restore(self, doc: dict) -> None:
         self.gen.set_state(doc["gen"])
         if self.noise is not None and doc.get("noise") is not None:
             self.noise.set_state(doc["noise"])
-        if self.coverage is not None and doc.get("coverage") is not None and doc["coverage"].shape == self.coverage.shape:
-            self.coverage.merge_cells(doc["coverage"])
+        if self.coverage is not None and doc.get("coverage") is not None and tuple(doc["coverage"].shape) == self.coverage.shape:
+            self.coverage.merge_cells(np.asarray(doc["coverage"]))
 
     def set_data(self, points: np.ndarray, labels: np.ndarray) -> None:
         """Replace the local data (online training's sliding window)."""

@@ -49,3 +49,28 @@ def test_a_checkpoint_that_cannot_be_written_stops_the_learner_naming_the_disk(t
     assert info.value.status == 1
     assert f"cannot write {full / 'checkpoints' / 'robot-0.pt'}: No space left on device (the disk of" in str(info.value)
     assert f"tmpfs mounted at {full}" in str(info.value)
+
+
+def test_a_node_with_the_noise_contrastive_prior_resumes_from_its_checkpoint(tmp_path):
+    """The quickstart's node (a BNN whose prior knows which cells its team covered): its checkpoint
+    is read back by torch's safe loader, with the cells it heard of."""
+    import torch
+
+    from swarmmap.services.learner.registry import RuleChoice, make_node, node_inputs
+    from swarmmap.shared.learning.networks import build_network
+
+    cfg = resolve(preset="quickstart", environ={})
+    bounds = (0.0, 0.0, 4.0, 4.0)
+    points, labels = np.random.default_rng(0).uniform(0, 2, (64, 2)).astype(np.float32), np.zeros(64, np.float32)
+
+    def node():
+        inputs = node_inputs(cfg.learner, build_network(cfg.network(), bounds, 0), points, labels, 1, bounds)
+        return make_node("dinno", inputs, RuleChoice.of(cfg.learner, {0: set()}, 0))
+
+    first = node()
+    first.coverage.others[-1, -1] = True  # a cell a teammate covered
+    ck = Checkpoints(tmp_path, 0, "r", settings_fingerprint(cfg), online=True)
+    ck.save(3, first.state(), first.checkpoint(), {}, points, labels)
+    again = node()
+    again.restore(ck.resumable()["node"])
+    assert again.coverage.others[-1, -1] and torch.is_tensor(first.checkpoint()["coverage"])
