@@ -95,6 +95,10 @@ EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learne
                                                "through the plan)"),
             ("world.dataset", "--dataset", "real LiDAR logs instead of a floor plan: a CARMEN log (.log, .clf, gzipped or not), "
                                            "a ROS 1 bag, a rosbag2 folder or an .mcap file (docs/datasets.md)"),
+            ("explore.policy", "--explore", "the robots choose where to drive while they learn: uncertainty (where their "
+                                            "map's std is highest), frontier (the classic), planned (the planned paths, "
+                                            "in legs); none: drive the planned paths, then learn (docs/exploration.md)"),
+            ("explore.starts", "--starts", "exploring: start positions \"x,y;x,y;...\" in metres in the plan's frame"),
             ("run_dir", "--run-dir", None),
             ("learner.device", "--device", "torch device of the learners: auto (a GPU when there is one), cpu, cuda, "
                                            "cuda:1 (the observer's: --set observer.device=...)"),

@@ -114,7 +114,8 @@ class SensorModel:
                                       s.samples_per_beam, s.occupied_depth_m, sampling=s.sampling, rng=rng,
                                       free_on_max_range=s.free_on_max_range)
         return Samples(run=scan.run, sender=scan.sender, seq=scan.seq, t=scan.t, position=list(scan.pose[:2]),
-                       points=Tensor.of(points, "<f4"), labels=Tensor.of(labels, "<f4"), last=scan.last)
+                       points=Tensor.of(points, "<f4"), labels=Tensor.of(labels, "<f4"), last=scan.last, leg=scan.leg,
+                       leg_end=scan.leg_end)
 
 
 def robot_file(template: str, robot: int) -> str:

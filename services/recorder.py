@@ -444,6 +444,18 @@ def summary(cfg: RunConfig, metrics: MetricsRecorder, ok: bool, reason: str, wal
     return doc
 
 
+def exploration_section(cfg: RunConfig) -> dict | None:
+    """``summary.json``'s ``exploration`` section from the world's ``exploration.csv`` (None, logged, where it cannot be read)."""
+    from swarmmap.shared.world.explore import exploration_summary, read_exploration  # (scipy: only for an exploring run)
+
+    path = cfg.run_dir / "exploration.csv"
+    try:
+        return exploration_summary(read_exploration(path), cfg.explore.policy)
+    except (OSError, ValueError) as exc:
+        log.error("no exploration section in summary.json: %s", exc)
+        return None
+
+
 def write_summary(run_dir: Path, doc: dict, phases: PhaseLog) -> None:
     """Log how the run ended (the verdict, the team's last progress line, the closing line) and
     write ``summary.json``."""
@@ -577,6 +589,8 @@ class Recorder:
             doc["held_up_by"] = self.stall.held_up_by()
         if self.tracker.absences:  # learners that left while training (a lost host, a cut link) and came back, or not
             doc["absences"] = self.tracker.absences
+        if self.cfg.explore.active and (section := exploration_section(self.cfg)) is not None:
+            doc["exploration"] = section
         return doc
 
 

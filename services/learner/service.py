@@ -49,6 +49,7 @@ from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.collector import Collector
 from swarmmap.services.learner.errors import LearnerError
 from swarmmap.services.learner.exchange import CHECK_EVERY_S, ExchangeStats, PeerFailure
+from swarmmap.services.learner.explorer import Explorer
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
 from swarmmap.services.learner.membership import Replay
 from swarmmap.services.learner.memory_link import MemoryLink
@@ -89,7 +90,8 @@ class RobotLearner:
     def __init__(self, cfg: RunConfig, robot: int, bus: Bus, device: torch.device):
         self.cfg, self.robot, self.bus, self.device = cfg, robot, bus, device
         self.s = s = cfg.learner
-        self.collector = Collector(s.window_scans if s.data == "online" else None)  # online: the window only
+        self.online = s.data == "online" or cfg.explore.active  # (an exploring robot's learner trains while it drives)
+        self.collector = Collector(s.window_scans if self.online else None)  # online: the window only
         bus.subscribe(bus.keys.samples(robot), Samples, self.collector.add)
         self.metrics_pub = bus.publisher(bus.keys.metrics(robot))
         # Over Zenoh, Algorithm 1 publishes every State; in process, the States the metrics are
@@ -104,7 +106,8 @@ class RobotLearner:
         self.t_start = 0.0
         self.start_round, self.start_state, self.resumed, self.doc = 0, None, False, None
         self.before: dict[str, float] = {}  # counters of the runs this one resumes: metrics stay cumulative
-        self.checkpoints = (Checkpoints(cfg.run_dir / "checkpoints", robot, cfg.run_id, settings_fingerprint(cfg), s.data == "online")
+        self.explorer: Explorer | None = None
+        self.checkpoints = (Checkpoints(cfg.run_dir / "checkpoints", robot, cfg.run_id, settings_fingerprint(cfg), self.online)
                             if cfg.run_dir is not None and s.checkpoint_every else None)
 
     def prepare(self, world: WorldMap, stop: threading.Event) -> None:
@@ -118,17 +121,26 @@ class RobotLearner:
         except GraphError as exc:
             raise LearnerError(str(exc), 2) from None
         self.neighbours = self.graph[self.robot]
+        self.stop = stop
+        if self.cfg.explore.active:
+            self.explorer = Explorer(self.cfg, self.robot, self.bus, self.collector, self.neighbours, lambda: self.node.model,
+                                     world)
+            self.bus.announce(self.robot, service="explore")  # (the world drives once every robot's learner listens)
         self.doc = self.checkpoints.resumable() if self.checkpoints is not None else None
         if self.doc is not None:
             self.points, self.labels = self.checkpoints.points(self.doc)
             return
-        self.points, self.labels = self.collector.wait(self.s, self.bus.keys.samples(self.robot), stop, f"robot {self.robot}")
+        self.points, self.labels = self.collector.wait(self.s, self.bus.keys.samples(self.robot), stop, f"robot {self.robot}",
+                                                       online=self.online, through_leg=0 if self.explorer else None)
         log.info("robot %d: %d training points (%.1f%% occupied)", self.robot, len(self.points), 100 * self.labels.mean())
 
-    def window(self) -> tuple[np.ndarray, np.ndarray]:
-        """Online: the newest ``window_scans`` scans' points (DiNNO's sliding window)."""
-        self.points, self.labels = self.collector.arrays(self.s.window_scans)
-        return self.points, self.labels
+    def window(self, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Online, round ``k``'s points: the newest ``window_scans`` scans' (DiNNO's sliding window),
+        or, exploring, those of the legs driven so far where they change (None: unchanged)."""
+        data = self.explorer.window(k, self.stop) if self.explorer is not None else self.collector.arrays(self.s.window_scans)
+        if data is not None:
+            self.points, self.labels = data
+        return data
 
     def compose(self, make_link: MakeLink | None, resume: bool = True) -> Transport | None:
         """Build the node of ``learner.algorithm`` on this robot's points, its links over
@@ -151,7 +163,7 @@ class RobotLearner:
         if resume:
             self.resume()
         self.rounds = SubRounds(self.node, ScheduleSettings.of(s), self.report, save=self.save if self.checkpoints else None,
-                                window=self.window if s.data == "online" else None, start_round=self.start_round,
+                                window=self.window if self.online else None, start_round=self.start_round,
                                 slots=self.slots, name=f"robot {self.robot}",
                                 diverged=f"settings too aggressive for this plan: lr_start {s.lr_start:g}, rho_init "
                                          f"{s.rho_init:g}, consensus {s.consensus}")

@@ -26,7 +26,7 @@ from swarmmap.shared.wire.codec import all_finite
 
 Report = Callable[[int, np.ndarray, dict[int, np.ndarray]], None]  # report(round, own State, the peers' States)
 Save = Callable[[int, np.ndarray], None]  # save(Algorithm 1 round, the State it starts from)
-Window = Callable[[], tuple[np.ndarray, np.ndarray]]  # the newest window of training points (online)
+Window = Callable[[int], tuple[np.ndarray, np.ndarray] | None]  # round k's training points where they change (online)
 REPORT_S = 60.0  # a round's Metrics at least this often, whatever eval_every (the recorder's stall watch lives on them)
 
 
@@ -47,10 +47,12 @@ class SubRounds:
     def exchange_update(self, c: int, theta: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:
         """Algorithm 1's round ``c``: its training rounds, the first with the neighbours' States."""
         e = self.s.exchange_every
+        # Its data first, outside the compute slot: an exploring learner may wait for its robot's drive there.
+        data = {k: self.window(k) for k in range(c * e, (c + 1) * e)} if self.window is not None else {}
         with self.slots:  # (its neighbours' next States cannot come before it sends its own: it waits without one)
             self.checkpoint_if_due(c, theta)
             for k in range(c * e, (c + 1) * e):
-                theta = self.train_round(k, theta, peers, exchange=k == c * e)
+                theta = self.train_round(k, theta, peers, exchange=k == c * e, data=data.get(k))
         return theta
 
     def clock_update(self, k: int, theta: np.ndarray, fresh: dict[int, np.ndarray]) -> np.ndarray:
@@ -58,7 +60,8 @@ class SubRounds:
         since the last round, if any."""
         self.latest.update(fresh)
         self.checkpoint_if_due(k, theta)  # (on a clock exchange_every is 1: Algorithm 1's rounds are training rounds)
-        return self.train_round(k, theta, self.latest, exchange=bool(fresh), fresh=fresh)
+        data = self.window(k) if self.window is not None else None
+        return self.train_round(k, theta, self.latest, exchange=bool(fresh), fresh=fresh, data=data)
 
     def forget(self, j: int) -> None:
         """Neighbour ``j`` went silent (on a clock): the update stops pulling towards its last State."""
@@ -73,12 +76,13 @@ class SubRounds:
             self.save(c, theta)
 
     def train_round(self, k: int, theta: np.ndarray, peers: dict[int, np.ndarray], exchange: bool,
-                    fresh: dict[int, np.ndarray] | None = None) -> np.ndarray:
-        """Training round ``k``: the report every ``eval_every`` rounds or REPORT_S seconds (consensus error against
-        ``peers``), then the node's update with the neighbours' States that came (``fresh``,
-        default ``peers``) where ``exchange``, else against the States it holds."""
-        if self.window is not None:  # DiNNO's sliding window over the scans received so far
-            self.node.set_data(*self.window())
+                    fresh: dict[int, np.ndarray] | None = None, data: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Training round ``k``: its new training ``data`` where there is some (DiNNO's sliding window,
+        exploration's legs), the report every ``eval_every`` rounds or REPORT_S seconds (consensus
+        error against ``peers``), then the node's update with the neighbours' States that came
+        (``fresh``, default ``peers``) where ``exchange``, else against the States it holds."""
+        if data is not None:
+            self.node.set_data(*data)
         if k % self.s.eval_every == 0 or time.monotonic() - self.reported_at >= REPORT_S:
             self.report(k, theta, peers)
             self.reported_at = time.monotonic()

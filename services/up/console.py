@@ -95,16 +95,29 @@ def closing_block(run_dir: Path, max_robots: int = 16) -> str:
         lines.append(f"  team mean      {sum(finals.values()) / len(finals):.4f} over {len(finals)} robot(s)")
         if (ref := summary.get("reference")) is not None:  # a run on a dataset: val_bce on its held-out scans
             lines.append(f"  reference      {ref['val_bce']:.4f}, the {ref['kind']} (val_bce on the same held-out scans)")
+    if (ex := summary.get("exploration")) is not None:
+        lines += exploration_lines(ex, max_robots)
     sent = sum(v.get("bytes_sent") or 0 for v in learners.values())
     if sent:
         lines.append(f"  sent           {sent / 1e6:.1f} MB by the learners")
     lines.append(f"  run directory  {run_dir}")
-    outputs = [name for name in ("overview.png", "maps/", "recording.rrd", "models/", "metrics.csv", "summary.json", "logs/")
+    outputs = [name for name in ("overview.png", "maps/", "recording.rrd", "models/", "metrics.csv", "exploration.csv", "goals.csv",
+                                 "summary.json", "logs/")
                if (run_dir / name.rstrip("/")).exists()]
     if outputs:
         lines.append(f"  in it          {', '.join(outputs)}")
     lines += ["next:"] + next_commands(run_dir, summary)
     return "\n".join(lines)
+
+
+def exploration_lines(ex: dict, max_robots: int) -> list[str]:
+    """The closing block's lines of an exploring team: coverage, distances, the distance to each coverage level."""
+    driven = sorted(((int(r), d) for r, d in (ex.get("robot_distance_m") or {}).items()))[:max_robots]
+    at = ", ".join(f"{float(level):.0%} at {d:.1f} m" if d is not None else f"{float(level):.0%} never"
+                   for level, d in (ex.get("team_distance_at_coverage") or {}).items())
+    return [f"  explored       {ex.get('policy')}: {ex.get('final_coverage', 0.0):.1%} of the reachable free space, "
+            f"team distance {ex.get('team_distance_m', 0.0):.1f} m (coverage {at})",
+            "  driven         " + "  ".join(f"robot {r} {d:.1f} m" for r, d in driven)]
 
 
 def next_commands(run_dir: Path, summary: dict) -> list[str]:

@@ -22,8 +22,9 @@ def wait_for_consumers(cfg: RunConfig, bus: Bus, stop: threading.Event) -> bool:
     when told to stop meanwhile."""
     w = cfg.world
     deadline = time.monotonic() + w.wait_for_consumers_s
-    for service in w.wait_for:
-        wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner") else {"0"}
+    # exploring, each learner listens to its team's goals and scans before the first scan (its "explore" token)
+    for service in [*w.wait_for, *(["explore"] if cfg.explore.active and "learner" in w.wait_for else [])]:
+        wanted = {str(i) for i in range(cfg.robots)} if service in ("lidar", "learner", "explore") else {"0"}
         missing = bus.wait_alive(service, wanted, max(0.0, deadline - time.monotonic()), stop)
         if stop.is_set():
             return False
@@ -42,16 +43,19 @@ def wait_for_subscribers(pubs: list, stop: threading.Event, timeout: float = 10.
 
 
 @contextmanager
-def serving(cfg: RunConfig, reply: Callable[[str], bytes], stop: threading.Event) -> Iterator[list | None]:
+def serving(cfg: RunConfig, reply: Callable[[str], bytes], stop: threading.Event,
+            listen: Callable[[Bus], None] | None = None) -> Iterator[list | None]:
     """The world's session: ``reply(parameters)`` (an encoded WorldMap) served on ``world/map``,
-    a scan publisher per robot, announced; yields the publishers once the consumers are alive, or
-    None when the world must not drive (``world.drive`` off: after the run is over; or stopped
-    while waiting)."""
+    a scan publisher per robot, ``listen(bus)``'s subscriptions, announced; yields the publishers
+    once the consumers are alive, or None when the world must not drive (``world.drive`` off:
+    after the run is over; or stopped while waiting)."""
     keys = Keys(cfg.key_prefix, cfg.run_id)
     with Bus.open(cfg.zenoh, keys, "world", 0) as bus:
         bus.end_with_run(stop)
         bus.serve(keys.world_map(), reply)
         pubs = [bus.publisher(keys.scan(i)) for i in range(cfg.robots)]
+        if listen is not None:
+            listen(bus)
         bus.announce()
         if not cfg.world.drive:
             log.info("serving the map only (world.drive is off)")

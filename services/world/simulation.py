@@ -29,13 +29,14 @@ import pybullet
 import shapely
 from scipy import ndimage
 
+from swarmmap.services.world.exploring import Exploration, Goals, LatestBce, explore_starts, planned_from
 from swarmmap.services.world.robot import LIDAR_LINK, write_urdf
 from swarmmap.services.world.session import serving
 from swarmmap.shared.run.atomic import atomic_write_bytes, save_png
 from swarmmap.shared.run.config import RunConfig, WorldSettings
 from swarmmap.shared.run.mapfiles import save_ros_map, trinary_pixels
 from swarmmap.shared.wire.codec import encode
-from swarmmap.shared.wire.protocol import Scan, Tensor, WorldMap
+from swarmmap.shared.wire.protocol import Goal, Metrics, Scan, Tensor, WorldMap
 from swarmmap.shared.world.floorplan import FloorPlan, OccupancyGrid, PlanError
 from swarmmap.shared.world.paths import coverage, path_length, point_along
 from swarmmap.shared.world.plans import load_floorplan, robot_paths
@@ -135,6 +136,13 @@ class Simulation:
             pybullet.resetBasePositionAndOrientation(body, [xy[0], xy[1], 0.0], pybullet.getQuaternionFromEuler([0, 0, yaw]),
                                                      physicsClientId=self.client)
 
+    def place(self, positions: list[np.ndarray], yaws: np.ndarray, t: float) -> None:
+        """Put every robot at ``positions`` (x, y) heading ``yaws`` at simulated time ``t`` (exploration drives them)."""
+        self.t = t
+        for xy, yaw, body in zip(positions, yaws, self.bodies):
+            pybullet.resetBasePositionAndOrientation(body, [xy[0], xy[1], 0.0], pybullet.getQuaternionFromEuler([0, 0, yaw]),
+                                                     physicsClientId=self.client)
+
     def cast(self, poses: np.ndarray, angles: np.ndarray, batched: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Ranges and hit flags (N, B) of beams along absolute ``angles`` (N, B) from ``poses``;
         all robots' rays in one ``rayTestBatch`` (``batched``) or one call per robot (default:
@@ -214,6 +222,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
         if w.export is not None:
             export(cfg, plan, grid, w.export)
             return 0
+        if cfg.explore.active:
+            return explore(cfg, plan, grid, stop)
         paths = robot_paths(cfg, plan, grid)
     except PlanError as exc:
         log.error("floor plan refused: %s", exc)
@@ -262,6 +272,52 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
             log.info("traversal done: %d scans per robot, %.1f s simulated in %.1f s (real-time factor %.1f)",
                      seq, sim.t, elapsed, sim.t / max(elapsed, 1e-9))
             stop.wait()  # keep serving the map until told to stop
+    finally:
+        sim.close()
+    return 0
+
+
+def explore(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, stop: threading.Event) -> int:
+    """The world of an exploring team (:mod:`~swarmmap.services.world.exploring`): the robots start
+    where ``explore.starts`` puts them (or spread by the seed, or at their planned paths' starts)
+    and drive in legs towards the goals their learners choose."""
+    w, e = cfg.world, cfg.explore
+    planned = robot_paths(cfg, plan, grid) if e.policy == "planned" else None
+    try:
+        starts = explore_starts(cfg, grid, planned)
+    except ValueError as exc:
+        log.error("%s", exc)
+        return 2
+    if planned is not None and e.starts:
+        planned = planned_from(starts, planned, grid, w.robot_clearance_m)
+    still = [s[None] for s in starts]
+    sim = Simulation(plan, still, w)
+    log.info("exploring %s (%s) by %s: %d robots from %s; legs of %.0f s, a goal every %d rounds, %.0f m each at most",
+             plan.name, plan.kind, e.policy, cfg.robots, "; ".join(f"({x:.2f}, {y:.2f})" for x, y in starts), e.leg_s,
+             e.decide_every, e.distance_m)
+    goals, bce = Goals(), LatestBce()
+
+    def listen(bus) -> None:
+        bus.subscribe(bus.keys.goal("*"), Goal, goals.add)
+        bus.subscribe(bus.keys.metrics("*"), Metrics, bce.add)
+
+    try:
+        with serving(cfg, map_replies(cfg, grid, still), stop, listen) as pubs:
+            if pubs is None:
+                return 0
+            seqs = [0] * cfg.robots
+
+            def publish(i, pose, angles, ranges, hit, leg, leg_end, last) -> None:
+                pubs[i].put(Scan(run=cfg.run_id, sender=i, seq=seqs[i], t=sim.t, pose=pose.tolist(),
+                                 max_range=w.lidar_max_range_m, angles=Tensor.of(angles, "<f4"),
+                                 ranges=Tensor.of(ranges, "<f4"), hit=Tensor.of(hit, "|u1"), last=last, leg=leg,
+                                 leg_end=leg_end))
+                seqs[i] += 1
+
+            start = time.monotonic()
+            Exploration(cfg, sim, grid, starts, planned, goals, bce, publish).run(stop)
+            log.info("drive done: %s scans per robot, %.1f s simulated in %.1f s", seqs, sim.t, time.monotonic() - start)
+            stop.wait()
     finally:
         sim.close()
     return 0

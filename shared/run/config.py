@@ -31,6 +31,7 @@ from pydantic_settings.sources.types import EnvNoneType
 from swarmmap.shared import plugins
 from swarmmap.shared.learning.layout import state_copies
 from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named where the config is
+    ExploreSettings,
     FaultSettings,
     LearnerSettings,
     LidarSettings,
@@ -46,6 +47,7 @@ from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named w
     consensus_options,
     model_kinds,
     parse_shape,
+    parse_starts,
     std_models,
 )
 from swarmmap.shared.wire.protocol import NAME_PATTERN
@@ -69,6 +71,7 @@ class RunConfig(Section):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     router: RouterSettings = Field(default_factory=RouterSettings)
     world: WorldSettings = Field(default_factory=WorldSettings)
+    explore: ExploreSettings = Field(default_factory=ExploreSettings)
     lidar: LidarSettings = Field(default_factory=LidarSettings)
     learner: LearnerSettings = Field(default_factory=LearnerSettings)
     observer: ObserverSettings = Field(default_factory=ObserverSettings)
@@ -93,6 +96,27 @@ class RunConfig(Section):
         if attack.sends == "both" and plugins.load("compressions", self.learner.compression).chained:
             raise ValueError(f"faults.attack {f.attack} sends two States a round: a compressed chain carries one "
                              "(a learner.compression whose States stand alone: none, f16 or bf16)")
+        return self
+
+    @model_validator(mode="after")
+    def _exploration(self) -> RunConfig:
+        e, s = self.explore, self.learner
+        if not e.active:
+            return self
+        clash = [why for bad, why in (
+            (bool(self.world.dataset), "world.dataset (a log's robots drive where they drove)"),
+            (bool(self.lidar.replay), "lidar.replay (a recording's robots drove already)"),
+            (s.exchange_every_s > 0, "learner.exchange_every_s (goals are chosen at stated rounds)"),
+            (s.algorithm == "centralized", "learner.algorithm centralized (no learner per robot chooses a goal)"),
+            (s.rounds <= e.decide_every, f"learner.rounds {s.rounds} (no goal before round decide_every {e.decide_every})"),
+        ) if bad]
+        if clash:
+            raise ValueError(f"explore.policy {e.policy} cannot run with " + "; ".join(clash))
+        if e.policy == "uncertainty" and s.model not in (stochastic := std_models()):
+            raise ValueError(f"explore.policy uncertainty needs a model with a std: learner.model {s.model} has none "
+                             f"({' or '.join(stochastic)})")
+        if e.starts:
+            parse_starts(e.starts, self.robots)
         return self
 
     @model_validator(mode="after")

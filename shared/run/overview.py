@@ -23,6 +23,7 @@ log = logging.getLogger("overview")
 OCCUPANCY_CMAP, STD_CMAP, ERROR_CMAP = "gray_r", "magma", "Reds"
 UNKNOWN_GREY = 0.5  # a ground-truth cell nobody knows (a ROS map's), on the occupancy scale
 MAX_HITS_SHOWN = 4000  # LiDAR hits drawn per robot over the ground truth
+Drives = tuple[np.ndarray, np.ndarray]  # a robot's driven path (K, 2) and its goals (G, 2), metres
 
 
 def pyplot():
@@ -105,10 +106,11 @@ def error_map(maps: dict[str, np.ndarray], truth: np.ndarray, known: np.ndarray)
 
 def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, std_max: float = 0.25,
                     notes: dict[int, str] | None = None, hits: dict[int, np.ndarray] | None = None,
-                    truth: str = "ground truth", title: str = "") -> None:
-    """One row per robot (ground truth with its ``hits``, mean, std where there is one, error),
-    axes in metres, a colour bar per scale; written to ``path`` as a PNG, atomically. ``truth``
-    names what ``grid`` is (a run on a dataset: the log-odds grid, a reference)."""
+                    truth: str = "ground truth", title: str = "", drives: dict[int, Drives] | None = None) -> None:
+    """One row per robot (ground truth with its ``hits`` and, exploring, its ``drives``: the path it
+    drove and its goals; mean, std where there is one, error), axes in metres, a colour bar per
+    scale; written to ``path`` as a PNG, atomically. ``truth`` names what ``grid`` is (a run on a
+    dataset: the log-odds grid, a reference)."""
     from swarmmap.shared.run.atomic import atomic_write_bytes
 
     plt = pyplot()
@@ -131,7 +133,8 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
         fig.suptitle(title, y=1 - 0.12 / height, fontsize=10)
     images: dict[str, object] = {}
     for row, robot in zip(axes, robots):
-        images |= overview_row(row, kinds, grid, maps[robot], std_max, (hits or {}).get(robot), robot, truth)
+        images |= overview_row(row, kinds, grid, maps[robot], std_max, (hits or {}).get(robot), robot, truth,
+                               (drives or {}).get(robot))
         row[0].set_ylabel(f"robot {robot}" + (f"\n{notes[robot]}" if notes and robot in notes else "") + "\ny (m)")
     for ax in axes[-1]:
         ax.set_xlabel("x (m)")
@@ -148,7 +151,7 @@ def overview_figure(grid, maps: dict[int, dict[str, np.ndarray]], path: Path, st
 
 
 def overview_row(row, kinds: list[str], grid, maps: dict[str, np.ndarray], std_max: float, hits: np.ndarray | None,
-                 robot: int, truth_name: str = "ground truth") -> dict[str, object]:
+                 robot: int, truth_name: str = "ground truth", drive: Drives | None = None) -> dict[str, object]:
     """One robot's panels of the overview; returns its images by kind."""
     import matplotlib
 
@@ -164,6 +167,11 @@ def overview_row(row, kinds: list[str], grid, maps: dict[str, np.ndarray], std_m
             if hits is not None and len(hits):
                 ax.scatter(hits[:, 0], hits[:, 1], s=0.3, color=matplotlib.colormaps["tab10"](robot % 10), linewidths=0)
             ax.set_title(f"{truth_name}, its LiDAR hits" if hits is not None and len(hits) else truth_name, fontsize=9, y=1.0)
+            if drive is not None:
+                driven, goals = drive
+                ax.plot(driven[:, 0], driven[:, 1], color="tab:red", linewidth=0.8)
+                ax.scatter(goals[:, 0], goals[:, 1], marker="x", s=12, color="tab:red", linewidths=0.8)
+                ax.set_title(f"{truth_name}, its hits, drive (line) and goals (x)", fontsize=9, y=1.0)
         elif kind == "mean":
             images["mean"] = show(ax, maps["mean"], ext, "occupancy")
             ax.set_title("mean occupancy", fontsize=9, y=1.0)
@@ -190,6 +198,25 @@ def robot_hits(run_dir: Path, robot: int, limit: int = MAX_HITS_SHOWN) -> np.nda
     return hits[:: max(1, len(hits) // limit)]
 
 
+def robot_drives(run_dir: Path) -> dict[int, Drives]:
+    """Exploring runs: each robot's driven path (``exploration.csv``) and goals (``goals.csv``)."""
+    if not (run_dir / "exploration.csv").exists():
+        return {}
+    from swarmmap.shared.world.explore import GOAL_COLUMNS, read_exploration
+
+    try:
+        rows = read_exploration(run_dir / "exploration.csv")
+        goals = read_exploration(run_dir / "goals.csv", GOAL_COLUMNS) if (run_dir / "goals.csv").exists() else []
+    except (OSError, ValueError) as exc:
+        log.warning("no drives in overview.png: %s", exc)
+        return {}
+    out = {}
+    for r in sorted({int(row["robot"]) for row in rows}):
+        out[r] = (np.array([(row["x"], row["y"]) for row in rows if row["robot"] == r]).reshape(-1, 2),
+                  np.array([(g["x"], g["y"]) for g in goals if g["robot"] == r and not g["done"]]).reshape(-1, 2))
+    return out
+
+
 def write_overview(run_dir: Path, std_max: float = 0.25, notes: dict[int, str] | None = None) -> Path | None:
     """``run_dir/overview.png`` from the run's ground truth and every ``maps/robot-<i>.npz``;
     returns its path, or None (saying why) when the run has no ground truth or no maps yet."""
@@ -207,5 +234,6 @@ def write_overview(run_dir: Path, std_max: float = 0.25, notes: dict[int, str] |
     from swarmmap.shared.run.rundir import config_doc, run_words
 
     title = f"run {config_doc(run_dir).get('run_id', run_dir.name)}: {run_words(run_dir)}"
-    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots}, truth, title)
+    overview_figure(truth_grid(run_dir), maps, path, std_max, notes, {r: robot_hits(run_dir, r) for r in robots}, truth, title,
+                    robot_drives(run_dir))
     return path

@@ -4,6 +4,7 @@ models and options). :mod:`swarmmap.shared.run.config` puts them together into a
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -238,6 +239,59 @@ class WorldSettings(Section):
         if self.door_width_m >= self.room_min_m - 2 * self.wall_thickness_m:
             raise ValueError("door_width_m must be narrower than the smallest room")
         return self
+
+
+def parse_starts(text: str, robots: int) -> list[tuple[float, float]]:
+    """``"x,y;x,y;..."`` (metres, the plan's frame) as one (x, y) per robot; a ValueError naming what is wrong."""
+    parts = [p for p in text.replace(" ", "").split(";") if p]
+    if len(parts) != robots:
+        raise ValueError(f"explore.starts gives {len(parts)} start(s) for {robots} robot(s) (\"x,y;x,y;...\" in metres)")
+    out = []
+    for p in parts:
+        try:
+            x, y = (float(v) for v in p.split(","))
+        except ValueError:
+            raise ValueError(f"explore.starts: {p!r} is no \"x,y\" pair of metres") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"explore.starts: {p!r} is not finite")
+        out.append((x, y))
+    return out
+
+
+class ExploreSettings(Section):
+    """Exploration: robots that choose where to drive from what their team has learned (docs/exploration.md)."""
+
+    policy: Literal["none", "planned", "uncertainty", "frontier"] = Field(
+        "none", description="none: the robots drive their planned paths once, then the learners train (the paper's "
+                            "setting); planned: the same paths, driven in legs while the learners train; uncertainty: "
+                            "each robot's next goal where its own model's std (or entropy) is highest per metre of path; "
+                            "frontier: the nearest frontier of a log-odds grid of its own and its neighbours' scans")
+    starts: str = Field("", description="start positions \"x,y;x,y;...\" in metres in the plan's frame, one per robot; "
+                                        "empty: spread over the plan's free space by the seed (planned paths: their own start)")
+    decide_every: int = Field(10, ge=1, description="training rounds between two goals: a robot's goal for leg L is "
+                                                     "chosen at round L x decide_every")
+    leg_s: float = Field(8.0, gt=0, description="simulated seconds a robot drives towards its goal in one leg")
+    distance_m: float = Field(60.0, gt=0, description="each robot's distance budget (m): it stops once it has driven this far")
+    stall_legs: int = Field(4, ge=1, description="the drive stops when the team's coverage grew less than stall_gain "
+                                                 "over this many legs")
+    stall_gain: float = Field(0.005, ge=0, description="see stall_legs (a share of the reachable free space)")
+    separation_m: float = Field(1.5, ge=0, description="a robot passes over goals within this distance of a teammate's")
+    min_travel_m: float = Field(1.0, ge=0, description="a robot passes over goals nearer than this much path (it would "
+                                                       "see nothing new there) while another is left")
+    clearance_m: float = Field(0.2, gt=0, description="paths to goals keep this far from what the robot believes occupied (m)")
+    map_resolution_m: float = Field(0.1, gt=0.01, description="cell size of the map a robot chooses its goal on (m)")
+    information: Literal["std", "entropy"] = Field("std", description="uncertainty: what a cell's observation is worth, "
+                                                                      "the model's std or its predictive entropy")
+    mc_samples: int = Field(16, ge=2, description="uncertainty: stochastic passes for the std map a goal is chosen on")
+    min_gain: float = Field(1.0, ge=0, description="uncertainty: a robot whose best scan would bring no more than this "
+                                                  "(summed std) has nowhere left to go")
+    goal_wait_s: float = Field(120.0, gt=0, description="how long the world waits for a robot's goal (and a robot for "
+                                                        "its lower-numbered neighbours') before it goes on without")
+
+    @property
+    def active(self) -> bool:
+        """Whether the robots drive in legs while the learners train."""
+        return self.policy != "none"
 
 
 class LidarSettings(Section):

@@ -241,6 +241,7 @@ BOUNDS: dict[str, Bounds] = {
     "RoundComplete": Bounds(4096, 1, 0),
     "Metrics": Bounds(16384, 2 + 128, 3 * 128),
     "RunDone": Bounds(65536, 2, 10_000),
+    "Goal": Bounds(65536, 3, 8),
     "Scan": Bounds(None, 8, 16),
     "Samples": Bounds(None, 6, 16),
     "WorldMap": Bounds(None, 16, 32),

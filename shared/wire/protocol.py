@@ -66,6 +66,7 @@ class Keys:
         learners/<id>/state         State       learner -> neighbours (Algorithm 1)
         learners/<id>/round-complete RoundComplete learner -> neighbours (Algorithm 1)
         learners/<id>/metrics       Metrics     learner -> launcher, observer
+        learners/<id>/goal          Goal        learner -> world, neighbours, observer (exploration)
         world/map                   WorldMap    queryable served by the world
         run/done                    RunDone     recorder -> every service: the run is over
         alive/<service>/<id>        liveliness tokens of every service
@@ -90,6 +91,9 @@ class Keys:
 
     def metrics(self, robot: int | str) -> str:
         return f"{self.root}/learners/{robot}/metrics"
+
+    def goal(self, robot: int | str) -> str:
+        return f"{self.root}/learners/{robot}/goal"
 
     def learner(self, robot: int | str) -> str:
         """Every key learner ``robot`` publishes on (``learners/<id>/*``)."""
@@ -218,6 +222,8 @@ class Scan(Message):
     ranges: Tensor
     hit: Tensor
     last: bool = False
+    leg: Annotated[int, Field(ge=0, le=10**6)] | None = None  # exploration: the leg of the drive the scan belongs to
+    leg_end: bool = False  # exploration: the robot's last scan of its leg
 
     @model_validator(mode="after")
     def _shapes(self) -> Scan:
@@ -239,6 +245,8 @@ class Samples(Message):
     points: Tensor
     labels: Tensor
     last: bool = False
+    leg: Annotated[int, Field(ge=0, le=10**6)] | None = None  # exploration: its scan's leg (Scan.leg)
+    leg_end: bool = False
 
     @model_validator(mode="after")
     def _shapes(self) -> Samples:
@@ -432,6 +440,36 @@ class Metrics(Message):
     final: bool = False
 
 
+MAX_GOAL_PATH = 4096  # waypoints of a Goal's path
+
+
+class Goal(Message):
+    """Exploration: where robot ``sender`` drives in ``leg`` of the drive, chosen at training
+    round ``round`` (``x``, ``y`` metres in the plan's frame) and the path to it on its own map
+    (``path`` (K, 2) float32, from the robot's position); ``done``: its policy has nowhere left to
+    go (the robot stays). Learner -> world, its neighbours (they pass over goals a teammate holds),
+    the observer."""
+
+    KIND: ClassVar[str] = "Goal"
+    leg: Annotated[int, Field(ge=1, le=10**6)]
+    round: Round
+    x: FiniteFloat = 0.0
+    y: FiniteFloat = 0.0
+    path: Tensor | None = None
+    done: bool = False
+    reason: Annotated[str, Field(max_length=200)] = ""
+
+    @model_validator(mode="after")
+    def _path(self) -> Goal:
+        if self.path is not None:
+            _require(self.path, "path", "<f4", 2, (2,))
+            if self.path.shape[0] > MAX_GOAL_PATH:
+                raise ValueError(f"path has {self.path.shape[0]} waypoints, at most {MAX_GOAL_PATH}")
+        if not self.done and (self.path is None or self.path.shape[0] == 0):
+            raise ValueError("a goal that is not done needs a path")
+        return self
+
+
 MAX_VALIDATION_POINTS = 50_000_000  # what a receiver agrees to draw (a few GB at most)
 
 
@@ -533,7 +571,7 @@ class RunDone(Message):
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.KIND: cls for cls in (Scan, Samples, State, RoundComplete, Metrics, WorldMap, RunDone)
+    cls.KIND: cls for cls in (Scan, Samples, State, RoundComplete, Metrics, Goal, WorldMap, RunDone)
 }
 
 M = TypeVar("M", bound=Message)

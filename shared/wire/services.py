@@ -90,7 +90,8 @@ def _learner_robots(ident: int, run: Access) -> list[int]:
 
 
 def _learner_speaks(keys: Keys, ident: int, run: Access) -> list[str]:
-    return [k for i in _learner_robots(ident, run) for k in (keys.learner(i), keys.alive("learner", i), keys.alive("exchange", i))]
+    return [k for i in _learner_robots(ident, run)
+            for k in (keys.learner(i), keys.alive("learner", i), keys.alive("exchange", i), keys.alive("explore", i))]
 
 
 def _learner_reads(keys: Keys, ident: int, run: Access) -> list[str]:
@@ -98,6 +99,9 @@ def _learner_reads(keys: Keys, ident: int, run: Access) -> list[str]:
     for i in _learner_robots(ident, run):
         peers = ["*"] if run.neighbours is None or run.inproc_learner else sorted(run.neighbours.get(i, set()))
         out += [keys.samples(i), keys.world_map(), *(k for j in peers for k in keys.exchange(j))]
+        # exploration: the teammates' goals (a robot passes over those it would share), and its own and
+        # their scans (the frontier policy's log-odds grid)
+        out += [keys.scan(i), *(k for j in peers for k in (keys.goal(j), keys.scan(j)))]
     return out
 
 
@@ -110,12 +114,14 @@ RECORDER = ServiceKind("The recorder: writes the run directory (config, metrics,
                        up_order=10, wait_alive=True, ends_run=True, rank=1)
 OBSERVER = ServiceKind("The Rerun observer: every learner's mean and std maps, the robots and the curves, live.",
                        "swarmmap.services.observer:run", section="observer",
-                       reads=lambda keys, i, run: [keys.metrics("*"), keys.scan("*"), keys.state("*"), keys.world_map()],
+                       reads=lambda keys, i, run: [keys.metrics("*"), keys.scan("*"), keys.state("*"), keys.goal("*"),
+                                                   keys.world_map()],
                        up_order=20, instances=lambda cfg: [0] if cfg.up.observer else [], grace="observer_grace_s",
                        optional=True, rank=2)
 WORLD = ServiceKind("The pybullet world: floor plan, robots on their paths, LiDAR scans, the ground-truth map.",
                     "swarmmap.services.world:run", section="world",
                     speaks=lambda keys, i, run: [keys.scan("*"), keys.world_map()],
+                    reads=lambda keys, i, run: [keys.goal("*"), keys.metrics("*")],  # exploration: goals, the val_bce logged
                     up_order=50, restart=True, rank=3)
 UP = ServiceKind("swarmmap up's own session: it watches the run's metrics and scans.", None,
                  reads=lambda keys, i, run: [keys.metrics("*"), keys.scan("*")], rank=4)

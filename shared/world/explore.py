@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.sparse import csgraph
 
+from swarmmap.shared.run.sections import parse_starts  # noqa: F401 - starts are read where exploration is
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid
 from swarmmap.shared.world.paths import GridPlanner, reachable_cells
@@ -142,14 +143,16 @@ def information(mean: np.ndarray, std: np.ndarray | None, kind: str = "std") -> 
 
 def uncertainty_goal(me: int, pose: np.ndarray, mean: np.ndarray, std: np.ndarray | None, origin: tuple[float, float],
                      resolution: float, claims: Claims, *, clearance: float = 0.2, sensor: Sensor = Sensor(),
-                     spacing: float = 0.5, travel_floor: float = 1.0, kind: str = "std", min_gain: float = 0.0) -> Goal | None:
+                     spacing: float = 0.5, travel_floor: float = 1.0, kind: str = "std", min_gain: float = 0.0,
+                     min_travel: float = 0.0) -> Goal | None:
     """The believed-drivable cell whose scan would bring the most information per metre of path.
 
     ``mean`` and ``std`` (H, W) are the robot's model over the grid at ``origin``/``resolution``.
     The path runs on the believed map (mean >= FREE_BELOW occupied) with ``clearance``; candidates
     lie on a lattice every ``spacing`` metres, away from teammates' goals while any is left; the
-    score is information / (path metres + ``travel_floor``). None when no candidate is reachable,
-    or none would bring more than ``min_gain``.
+    score is information / (path metres + ``travel_floor``); candidates nearer than ``min_travel``
+    metres of path are passed over while another is left (a robot that stays sees nothing new).
+    None when no candidate is reachable, or none would bring more than ``min_gain``.
     """
     occupied = mean >= FREE_BELOW
     planner = GridPlanner(OccupancyGrid(occupied.astype(np.uint8), resolution, origin), clearance)
@@ -161,7 +164,7 @@ def uncertainty_goal(me: int, pose: np.ndarray, mean: np.ndarray, std: np.ndarra
     if len(cells) == 0:
         return None
     points = planner.xy(cells)
-    free = claims.free(points, me)
+    free = claims.free(points, me) & (costs[cells] >= min_travel)
     if free.any():
         cells, points = cells[free], points[free]
     gain = seen_cells(occupied, origin, resolution, points, sensor) @ information(mean, std, kind).ravel()
@@ -174,13 +177,13 @@ def uncertainty_goal(me: int, pose: np.ndarray, mean: np.ndarray, std: np.ndarra
 
 
 def frontier_goal(me: int, pose: np.ndarray, grid: LogOddsGrid, claims: Claims, *, clearance: float = 0.2,
-                  min_cells: int = 4) -> Goal | None:
+                  min_cells: int = 4, min_travel: float = 0.0) -> Goal | None:
     """The nearest frontier cluster of ``grid`` by path through known free space.
 
     Frontier cells are known free (some beam crossed them, probability below KNOWN_FREE_BELOW)
     next to cells no beam reached; clusters of fewer than ``min_cells`` are noise. Each cluster's
-    goal is its reachable cell nearest its centroid; clusters near a teammate's goal are passed
-    over while another is left. None when no frontier is reachable (the robot's map is closed).
+    goal is its reachable cell nearest its centroid; clusters near a teammate's goal, or nearer than
+    ``min_travel`` metres of path, are passed over while another is left. None when no frontier is reachable (the robot's map is closed).
     """
     known = grid.known()
     free = known & (grid.probability() < KNOWN_FREE_BELOW)
@@ -208,7 +211,7 @@ def frontier_goal(me: int, pose: np.ndarray, grid: LogOddsGrid, claims: Claims, 
     if not options:
         return None
     points = np.array([o[2] for o in options])
-    free_of_claims = claims.free(points, me)
+    free_of_claims = claims.free(points, me) & (np.array([o[0] for o in options]) >= min_travel)
     if free_of_claims.any():
         options = [o for o, ok in zip(options, free_of_claims) if ok]
     cost, cell, xy, size = min(options, key=lambda o: (o[0], -o[3]))
@@ -251,7 +254,7 @@ def distance_at(coverage: np.ndarray, distance: np.ndarray, levels: tuple[float,
     out: dict[str, float | None] = {}
     for level in levels:
         reached = np.flatnonzero(np.asarray(coverage) >= level)
-        out[f"{level:g}"] = float(np.asarray(distance)[reached[0]]) if len(reached) else None
+        out[f"{level:g}"] = round(float(np.asarray(distance)[reached[0]]), 3) if len(reached) else None
     return out
 
 
@@ -271,62 +274,50 @@ def spread_starts(truth: OccupancyGrid, robots: int, seed: int, clearance: float
     return xy[picked]
 
 
-def parse_starts(text: str, robots: int) -> np.ndarray:
-    """``"x,y;x,y;..."`` (metres, the plan's frame) as (robots, 2); a clear message otherwise."""
-    parts = [p for p in text.replace(" ", "").split(";") if p]
-    if len(parts) != robots:
-        raise ValueError(f"--starts gives {len(parts)} start(s) for {robots} robot(s) (\"x,y;x,y;...\" in metres)")
-    out = []
-    for p in parts:
-        try:
-            x, y = (float(v) for v in p.split(","))
-        except ValueError:
-            raise ValueError(f"--starts: {p!r} is no \"x,y\" pair of metres") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValueError(f"--starts: {p!r} is not finite")
-        out.append((x, y))
-    return np.array(out, dtype=np.float64)
-
-
 EXPLORATION_COLUMNS = ("robot", "sim_time_s", "x", "y", "distance_m", "coverage", "val_bce")
 
 
-class ExplorationLog:
-    """``exploration.csv``: one row per robot per scan (:data:`EXPLORATION_COLUMNS`; metres in the
-    plan's frame, ``distance_m`` driven so far, ``coverage`` the team's so far, the robot's latest
-    ``val_bce``), appended and flushed row by row: a resumed run goes on where it was, a crash
-    loses at most the row being written (:func:`read_exploration` skips a torn last line)."""
+GOAL_COLUMNS = ("robot", "leg", "sim_time_s", "x", "y", "done")
 
-    def __init__(self, path: Path | str):
+
+class RowLog:
+    """A CSV file of ``columns`` appended and flushed row by row: a resumed run goes on where it
+    was, a crash loses at most the row being written (:func:`read_rows` skips a torn last line).
+    ``exploration.csv`` (:data:`EXPLORATION_COLUMNS`: one row per robot per scan, metres in the
+    plan's frame, ``distance_m`` driven so far, ``coverage`` the team's so far, the robot's latest
+    ``val_bce``) and ``goals.csv`` (:data:`GOAL_COLUMNS`: each goal the world drove a robot to)."""
+
+    def __init__(self, path: Path | str, columns: tuple[str, ...] = EXPLORATION_COLUMNS):
         self.path = Path(path)
         fresh = not self.path.exists() or self.path.stat().st_size == 0
         self.file = self.path.open("a", encoding="utf-8", newline="")
         if fresh:
-            self.file.write(",".join(EXPLORATION_COLUMNS) + "\n")
+            self.file.write(",".join(columns) + "\n")
             self.file.flush()
 
-    def row(self, robot: int, sim_time_s: float, xy: np.ndarray, distance_m: float, coverage: float,
-            val_bce: float | None) -> None:
-        bce = "" if val_bce is None or not math.isfinite(val_bce) else f"{val_bce:.6f}"
-        self.file.write(f"{robot},{sim_time_s:.3f},{xy[0]:.4f},{xy[1]:.4f},{distance_m:.4f},{coverage:.6f},{bce}\n")
+    def row(self, *values: float | None) -> None:
+        """One row: numbers (an empty field for None or a non-finite one)."""
+        self.file.write(",".join("" if v is None or not math.isfinite(v) else f"{v:.7g}" if isinstance(v, float) else str(v)
+                                 for v in values) + "\n")
         self.file.flush()
 
     def close(self) -> None:
         self.file.close()
 
 
-def read_exploration(path: Path | str) -> list[dict[str, float]]:
-    """The rows of an ``exploration.csv`` (numbers; ``val_bce`` NaN where none yet), a torn last line skipped."""
+def read_exploration(path: Path | str, columns: tuple[str, ...] = EXPLORATION_COLUMNS) -> list[dict[str, float]]:
+    """The rows of an ``exploration.csv`` (or a CSV of other ``columns``, as :class:`RowLog` writes
+    them) as numbers, NaN where a field is empty (no val_bce yet), a torn last line skipped."""
     rows = []
     with Path(path).open(encoding="utf-8", newline="") as f:
         reader = csv.DictReader(f)
-        if tuple(reader.fieldnames or ()) != EXPLORATION_COLUMNS:
-            raise ValueError(f"{path}: not an exploration.csv (columns {reader.fieldnames})")
+        if tuple(reader.fieldnames or ()) != columns:
+            raise ValueError(f"{path}: not a CSV of {', '.join(columns)} (columns {reader.fieldnames})")
         for line in reader:
-            if any(line[k] is None for k in EXPLORATION_COLUMNS):
+            if any(line[k] is None for k in columns):
                 continue  # (a row cut short by a crash)
             try:
-                rows.append({k: float(line[k]) if line[k] else math.nan for k in EXPLORATION_COLUMNS})
+                rows.append({k: float(line[k]) if line[k] else math.nan for k in columns})
             except ValueError:
                 continue
     return rows
@@ -349,13 +340,14 @@ def exploration_summary(rows: list[dict[str, float]], policy: str) -> dict:
 
 def path_blocked(pose: np.ndarray, path: np.ndarray, hits: np.ndarray, clearance: float, lookahead: float) -> bool:
     """Whether the next ``lookahead`` metres of ``path`` from ``pose`` pass within ``clearance`` of a
-    LiDAR return ``hits`` (K, 2): the learned map was wrong there, the robot must re-plan."""
+    LiDAR return ``hits`` (K, 2): the learned map was wrong there, the robot must re-plan. Where
+    the robot stands is not looked at (it is there already: a robot next to a wall may leave)."""
     if len(hits) == 0 or len(path) == 0:
         return False
     route = np.vstack([np.asarray(pose, np.float64)[None], path])
     seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
     n = max(2, int(min(lookahead, seg.sum()) / (clearance / 2)) + 1)
-    s = np.linspace(0.0, min(lookahead, seg.sum()), n)
+    s = np.linspace(0.0, min(lookahead, seg.sum()), n)[1:]
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
     frac = np.where(seg[i] > 0, (s - cum[i]) / np.where(seg[i] > 0, seg[i], 1.0), 0.0)

@@ -58,7 +58,7 @@ def test_spread_starts_are_clear_and_apart_and_parse_starts_refuses_nonsense(tru
     assert (truth.clearance()[truth.cells(starts)[:2]] >= 0.3).all()
     assert min(np.linalg.norm(starts[i] - starts[j]) for i in range(3) for j in range(i)) > 2.0
     assert (spread_starts(truth, 3, seed=1) == starts).all()
-    assert parse_starts("1,2; 3.5,4", 2).tolist() == [[1, 2], [3.5, 4]]
+    assert parse_starts("1,2; 3.5,4", 2) == [(1, 2), (3.5, 4)]
     for bad, why in [("1,2", "1 start"), ("1,2;x,4", "no \"x,y\" pair"), ("1,2;nan,4", "not finite")]:
         with pytest.raises(ValueError, match=why):
             parse_starts(bad, 2)
@@ -172,16 +172,16 @@ def test_a_team_of_three_covers_the_building_by_either_policy(truth, policy):
 
 
 def test_the_exploration_log_appends_survives_a_torn_line_and_sums_up(tmp_path):
-    from swarmmap.shared.world.explore import ExplorationLog, exploration_summary, read_exploration
+    from swarmmap.shared.world.explore import RowLog, exploration_summary, read_exploration
 
     path = tmp_path / "exploration.csv"
-    log = ExplorationLog(path)
-    log.row(0, 0.0, np.array([1.0, 2.0]), 0.0, 0.10, None)
-    log.row(1, 0.0, np.array([5.0, 2.0]), 0.0, 0.20, 0.7)
+    log = RowLog(path)
+    log.row(0, 0.0, 1.0, 2.0, 0.0, 0.10, None)
+    log.row(1, 0.0, 5.0, 2.0, 0.0, 0.20, 0.7)
     log.close()
-    log = ExplorationLog(path)  # (a resumed run appends)
-    log.row(0, 1.0, np.array([2.0, 2.0]), 1.0, 0.55, 0.5)
-    log.row(1, 1.0, np.array([5.0, 4.0]), 2.0, 0.85, 0.4)
+    log = RowLog(path)  # (a resumed run appends)
+    log.row(0, 1.0, 2.0, 2.0, 1.0, 0.55, 0.5)
+    log.row(1, 1.0, 5.0, 4.0, 2.0, 0.85, 0.4)
     log.close()
     with path.open("a") as f:
         f.write("0,2.0,3.0")  # a crash mid-row

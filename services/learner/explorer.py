@@ -1,0 +1,159 @@
+"""A learner's part in exploration (``explore.policy``; the world's side: swarmmap.services.world.exploring).
+
+At training round L x ``explore.decide_every`` (L = 1, 2, ... while the learners have rounds for
+another leg) the learner chooses its robot's goal for leg L of the drive from what it trained on
+(legs 0..L-1) and publishes it on ``learners/<id>/goal``, then waits for its robot's last scan of
+leg L and trains on legs 0..L from then on (at most ``learner.window_scans`` scans, the newest).
+Its goal passes over the goals that its lower-numbered neighbours hold for the same leg (it waits
+for them up to ``explore.goal_wait_s``): each robot's choice depends on the seed and the data only,
+never on which learner was quicker.
+
+- ``uncertainty``: the model's mean and std (``explore.mc_samples`` passes, seeded by the leg) over
+  the plan's bounds at ``explore.map_resolution_m``, cells where the robot's own scans ended
+  marked occupied (a model that has not learned a wall yet must not send a robot through it),
+  then :func:`~swarmmap.shared.world.explore.uncertainty_goal`.
+- ``frontier``: a log-odds grid of its own and its neighbours' scans of legs 0..L-1, then
+  :func:`~swarmmap.shared.world.explore.frontier_goal`.
+- ``planned``: no goal; the learner only follows the legs.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from swarmmap.services.learner.collector import Collector
+from swarmmap.shared.learning.bnn import predict_mean_std
+from swarmmap.shared.run.config import RunConfig
+from swarmmap.shared.wire.bus import Bus
+from swarmmap.shared.wire.protocol import Goal, Scan, Tensor, WorldMap
+from swarmmap.shared.world.explore import Claims, Sensor, frontier_goal, uncertainty_goal
+from swarmmap.shared.world.explore import Goal as Choice
+from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.logodds import build_logodds
+
+log = logging.getLogger("learner")
+Data = tuple[np.ndarray, np.ndarray]
+
+
+class Explorer:
+    """Robot ``robot``'s goals and the legs its learner trains on; ``model()`` is its current network."""
+
+    def __init__(self, cfg: RunConfig, robot: int, bus: Bus, collector: Collector, neighbours: set[int],
+                 model: Callable[[], object], world: WorldMap):
+        self.cfg, self.e, self.robot, self.collector, self.model = cfg, cfg.explore, robot, collector, model
+        self.keys = bus.keys
+        self.neighbours = sorted(neighbours)
+        self.legs = (cfg.learner.rounds - 1) // self.e.decide_every  # as the world counts them
+        self.pub = bus.publisher(bus.keys.goal(robot))
+        self.grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
+        self.heard: dict[tuple[int, int], Goal] = {}
+        self.scans: list[Scan] = []  # frontier: its own and its neighbours' scans
+        self.ended: dict[int, int] = {}  # robot -> newest leg whose end its scans showed
+        self.cond = threading.Condition()
+        self.data: Data | None = None
+        self.waited_s = self.choose_s = 0.0
+        for j in self.neighbours:
+            bus.subscribe(bus.keys.goal(j), Goal, self.add_goal)
+        if self.e.policy == "frontier":
+            for j in [robot, *self.neighbours]:
+                bus.subscribe(bus.keys.scan(j), Scan, self.add_scan)
+
+    def add_goal(self, msg: Goal) -> None:
+        with self.cond:
+            self.heard.setdefault((msg.sender, msg.leg), msg)
+            self.cond.notify_all()
+
+    def add_scan(self, msg: Scan) -> None:
+        with self.cond:
+            self.scans.append(msg)
+            if msg.leg is not None and (msg.leg_end or msg.last):
+                self.ended[msg.sender] = max(self.ended.get(msg.sender, -1), msg.leg + (10**6 if msg.last else 0))
+            self.cond.notify_all()
+
+    def wait_for(self, ready: Callable[[], bool], stop: threading.Event) -> bool:
+        """Wait (up to ``goal_wait_s``) until ``ready()``; False when it never was."""
+        deadline = time.monotonic() + self.e.goal_wait_s
+        with self.cond:
+            while not ready() and not stop.is_set() and time.monotonic() < deadline:
+                self.cond.wait(0.2)
+            return ready()
+
+    def window(self, k: int, stop: threading.Event) -> Data | None:
+        """The training points of round ``k`` when they change (None: the same as before). At a
+        leg's round: choose and publish the goal, wait for the leg, then its points."""
+        every = self.e.decide_every
+        if self.data is None:
+            self.data = self.collector.arrays(self.cfg.learner.window_scans, through_leg=0)
+            return self.data
+        if k % every or not 1 <= k // every <= self.legs:
+            return None
+        leg = k // every  # (its robot's drive may be over: then no goal, and no wait)
+        if not self.collector.done.is_set():
+            t0 = time.monotonic()
+            if self.e.policy != "planned":
+                self.publish(leg, k, stop)
+            self.choose_s += time.monotonic() - t0
+            t0 = time.monotonic()
+            if not self.collector.wait_leg(leg, self.e.goal_wait_s + self.cfg.learner.collect_timeout_s, stop):
+                log.warning("robot %d: its scans of leg %d did not end within %.0f s: training on what came", self.robot,
+                            leg, self.e.goal_wait_s + self.cfg.learner.collect_timeout_s)
+            self.waited_s += time.monotonic() - t0
+        self.data = self.collector.arrays(self.cfg.learner.window_scans, through_leg=leg)
+        return self.data
+
+    def publish(self, leg: int, k: int, stop: threading.Event) -> None:
+        """Robot ``robot``'s goal for ``leg``, chosen after its lower-numbered neighbours' (theirs held apart)."""
+        before = [j for j in self.neighbours if j < self.robot]
+        if not self.wait_for(lambda: all((j, leg) in self.heard for j in before), stop):
+            log.warning("robot %d: goals of neighbour(s) %s for leg %d did not come within %.0f s: chosen without them "
+                        "(this choice depends on timing)", self.robot, [j for j in before if (j, leg) not in self.heard],
+                        leg, self.e.goal_wait_s)
+        claims = Claims({j: (g.x, g.y) for (j, g_leg), g in list(self.heard.items()) if g_leg == leg and not g.done},
+                        self.e.separation_m)
+        pose = np.asarray(self.collector.position or (0.0, 0.0), np.float64)
+        choice = self.uncertainty(pose, claims, leg) if self.e.policy == "uncertainty" else self.frontier(pose, claims, leg, stop)
+        run, me = self.cfg.run_id, self.robot
+        if choice is None:
+            msg = Goal(run=run, sender=me, leg=leg, round=k, x=float(pose[0]), y=float(pose[1]), done=True,
+                       reason=f"no {self.e.policy} goal left")
+        else:
+            msg = Goal(run=run, sender=me, leg=leg, round=k, x=choice.xy[0], y=choice.xy[1],
+                       path=Tensor.of(choice.path[:4096], "<f4"), reason=choice.reason[:200])
+        log.info("robot %d: leg %d goal %s", me, leg, "none (done)" if msg.done else f"({msg.x:.2f}, {msg.y:.2f}): {msg.reason}")
+        self.pub.put(msg)
+
+    def sensor(self) -> Sensor:
+        w = self.cfg.world
+        return Sensor(beams=min(w.lidar_beams, 72), max_range=w.lidar_max_range_m)
+
+    def uncertainty(self, pose: np.ndarray, claims: Claims, leg: int) -> Choice | None:
+        e, res = self.e, self.e.map_resolution_m
+        pts, (h, w) = self.grid.centres(res)
+        mean, std = predict_mean_std(self.model(), pts.astype(np.float32), samples=e.mc_samples, seed=leg)
+        mean, std = mean.reshape(h, w).astype(np.float64), std.reshape(h, w)
+        points, labels = self.data
+        hits = points[labels > 0.5]
+        cells = OccupancyGrid(np.zeros((h, w), np.uint8), res, self.grid.origin).cells(hits)
+        mean[cells[0][cells[2]], cells[1][cells[2]]] = 1.0  # where its own beams ended: a wall, whatever it learned
+        return uncertainty_goal(self.robot, pose, mean, std, self.grid.origin, res, claims, clearance=e.clearance_m,
+                                sensor=self.sensor(), kind=e.information, min_gain=e.min_gain, min_travel=e.min_travel_m)
+
+    def frontier(self, pose: np.ndarray, claims: Claims, leg: int, stop: threading.Event) -> Choice | None:
+        team = [self.robot, *self.neighbours]
+        self.wait_for(lambda: all(self.ended.get(j, -1) >= leg - 1 for j in team), stop)
+        with self.cond:
+            scans = [s for s in self.scans if s.leg is not None and s.leg < leg]
+        if not scans:
+            log.warning("robot %d: no scan of its own or its neighbours' heard before leg %d: no frontier", self.robot, leg)
+            return None
+        res = self.e.map_resolution_m
+        _, shape = self.grid.centres(res)
+        grid = build_logodds(shape, self.grid.origin, res, np.array([s.pose[:2] for s in scans]),
+                             np.stack([s.angles.numpy() for s in scans]), np.stack([s.ranges.numpy() for s in scans]),
+                             np.stack([s.hit.numpy().astype(bool) for s in scans]))
+        return frontier_goal(self.robot, pose, grid, claims, clearance=self.e.clearance_m, min_travel=self.e.min_travel_m)
