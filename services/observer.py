@@ -58,7 +58,7 @@ from swarmmap.shared.run.rundir import unused_path
 from swarmmap.shared.run.runtime import die_with_parent
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.compression import Decompressor
-from swarmmap.shared.wire.protocol import Keys, Metrics, ProtocolError, Scan, State, WorldMap
+from swarmmap.shared.wire.protocol import Goal, Keys, Metrics, ProtocolError, Scan, State, WorldMap
 from swarmmap.shared.world.floorplan import OccupancyGrid
 
 log = logging.getLogger("swarmmap.observer")
@@ -286,6 +286,18 @@ class Observer:
         if changed:
             self.rec.log(f"world/robots/{i}/trajectory", rr.LineStrips2D([self.pixel(np.array(path.points))], colors=colour(i)))
 
+    def on_goal(self, goal: Goal) -> None:
+        """Exploring: the robot's goal for the next leg and the path its learner planned to it."""
+        if self.grid is None:
+            return
+        i, c = goal.sender, colour(goal.sender)
+        if goal.done or goal.path is None:
+            self.rec.log(f"world/robots/{i}/goal", rr.Clear(recursive=True))
+            return
+        self.rec.log(f"world/robots/{i}/goal", rr.Points2D(self.pixel([goal.x, goal.y]), radii=5, colors=c,
+                                                           labels=f"{i}: leg {goal.leg}"))
+        self.rec.log(f"world/robots/{i}/goal/path", rr.LineStrips2D([self.pixel(goal.path.numpy())], colors=c, radii=0.5))
+
     def log_graph(self) -> None:
         edges = [self.pixel(np.array([self.positions[i], self.positions[j]]))
                  for i, nbrs in self.graph.items() for j in nbrs if i < j and i in self.positions and j in self.positions]
@@ -430,6 +442,7 @@ def watch(cfg: RunConfig, keys: Keys, obs: Observer, stop: threading.Event) -> i
         # A watcher: behind rings, so that logging to Rerun never slows the world or the learners.
         bus.subscribe(keys.scan("*"), Scan, obs.on_scan, newest=WATCH_RING)
         bus.subscribe(keys.metrics("*"), Metrics, obs.on_metrics, newest=WATCH_RING)
+        bus.subscribe(keys.goal("*"), Goal, obs.on_goal, newest=WATCH_RING)
         bus.subscribe(keys.state("*"), State, obs.on_state, check=obs.check_state, newest=max(8, 2 * cfg.robots))
         bus.announce(0)
         worker.start()

@@ -110,22 +110,26 @@ class RobotLearner:
         self.checkpoints = (Checkpoints(cfg.run_dir / "checkpoints", robot, cfg.run_id, settings_fingerprint(cfg), self.online)
                             if cfg.run_dir is not None and s.checkpoint_every else None)
 
-    def prepare(self, world: WorldMap, stop: threading.Event) -> None:
-        """Its training points (the traversal's, or a checkpoint's), the validation set and the graph."""
-        self.world = world
-        self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
-        self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
+    def listen(self, world: WorldMap, stop: threading.Event) -> None:
+        """Its graph and, exploring, its subscriptions to its team's goals and scans, said with its
+        "explore" token (the world drives once every robot's learner has one)."""
+        self.world, self.stop = world, stop
         positions = world.positions.numpy() if world.positions is not None else None
         try:
             self.graph = run_graph(self.cfg.graph(), self.cfg.robots, positions)
         except GraphError as exc:
             raise LearnerError(str(exc), 2) from None
         self.neighbours = self.graph[self.robot]
-        self.stop = stop
         if self.cfg.explore.active:
             self.explorer = Explorer(self.cfg, self.robot, self.bus, self.collector, self.neighbours, lambda: self.node.model,
                                      world)
-            self.bus.announce(self.robot, service="explore")  # (the world drives once every robot's learner listens)
+            self.bus.announce(self.robot, service="explore")
+
+    def prepare(self, stop: threading.Event) -> None:
+        """Its training points (the traversal's, or a checkpoint's) and the validation set."""
+        world = self.world
+        self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
+        self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
         self.doc = self.checkpoints.resumable() if self.checkpoints is not None else None
         if self.doc is not None:
             self.points, self.labels = self.checkpoints.points(self.doc)
@@ -161,25 +165,13 @@ class RobotLearner:
             log.info("robot %d: noise-contrastive prior on %.0f%% of the map (cells of %.2f m farther than %.2f m from its "
                      "data)", self.robot, 100 * c.uncovered_fraction(), c.cell, c.margin)
         if resume:
-            self.resume()
+            resume_node(self)
         self.rounds = SubRounds(self.node, ScheduleSettings.of(s), self.report, save=self.save if self.checkpoints else None,
                                 window=self.window if self.online else None, start_round=self.start_round,
                                 slots=self.slots, name=f"robot {self.robot}",
                                 diverged=f"settings too aggressive for this plan: lr_start {s.lr_start:g}, rho_init "
                                          f"{s.rho_init:g}, consensus {s.consensus}")
         return transport
-
-    def resume(self) -> None:
-        """From the checkpoint found by :meth:`prepare`, if any; else write round 0's."""
-        if self.doc is None:
-            if self.checkpoints is not None:  # a learner restarted from now on keeps its data
-                self.save(0, self.node.state())
-            return
-        self.node.restore(self.doc["node"])
-        self.start_round, self.start_state = int(self.doc["round"]), self.doc["state"].numpy()
-        set_flat(self.node.model, torch.from_numpy(self.node.layout.params_of(self.start_state).copy()))
-        self.resumed, self.before = True, dict(self.doc.get("counters", {}))
-        log.info("robot %d: resuming from %s at round %d", self.robot, self.checkpoints.path, self.start_round)
 
     def save(self, c: int, theta: np.ndarray) -> None:
         self.checkpoints.save(c, theta, self.node.checkpoint(), self.counters(), self.points, self.labels)
@@ -236,15 +228,36 @@ class RobotLearner:
         msg = self.metrics(s.rounds, final, peers, final=True)  # (its times are the training's)
         if self.cfg.run_dir is not None:  # before the final Metrics: a run is over only once every map is on disk
             write_outputs(self.cfg, robot, self.node.model, self.world, self.points, self.labels)
-        m = self.final_metrics = self.publish(msg, final)
-        log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
-                 robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
-        if isinstance(self.slots, ComputeSlots):
-            log.info("robot %d: %.1f s of its rounds waiting for one of this host's %d compute slots", robot,
-                     self.slots.wait_s, s.compute_slots)
-        if self.node.coverage is not None:
-            log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
-                     robot, 100 * self.node.coverage.uncovered_fraction(), 100 * (1 - self.node.coverage.own.mean()))
+        self.final_metrics = self.publish(msg, final)
+        log_finished(self)
+
+
+def resume_node(learner: RobotLearner) -> None:
+    """A learner's node from the checkpoint found by :meth:`RobotLearner.prepare`, if any; else round 0's written."""
+    if learner.doc is None:
+        if learner.checkpoints is not None:  # a learner restarted from now on keeps its data
+            learner.save(0, learner.node.state())
+        return
+    learner.node.restore(learner.doc["node"])
+    learner.start_round, learner.start_state = int(learner.doc["round"]), learner.doc["state"].numpy()
+    set_flat(learner.node.model, torch.from_numpy(learner.node.layout.params_of(learner.start_state).copy()))
+    learner.resumed, learner.before = True, dict(learner.doc.get("counters", {}))
+    log.info("robot %d: resuming from %s at round %d", learner.robot, learner.checkpoints.path, learner.start_round)
+
+
+def log_finished(learner: RobotLearner) -> None:
+    """What a finished learner says of its run: time, loss, where the time went, what its prior covered."""
+    s, robot, m, node = learner.s, learner.robot, learner.final_metrics, learner.node
+    log.info("robot %d done: %d rounds in %.1f s, val_bce %.4f (compute %.1f s, waiting %.1f s, sending %.1f s)",
+             robot, s.rounds, m.wall_time_s, m.val_bce, m.compute_s, m.wait_s, m.send_s)
+    if isinstance(learner.slots, ComputeSlots):
+        log.info("robot %d: %.1f s of its rounds waiting for one of this host's %d compute slots", robot,
+                 learner.slots.wait_s, s.compute_slots)
+    if node.coverage is not None:
+        log.info("robot %d: %.0f%% of the map was away from every robot's data it heard of (%.0f%% from its own)",
+                 robot, 100 * node.coverage.uncovered_fraction(), 100 * (1 - node.coverage.own.mean()))
+    if (ex := learner.explorer) is not None:
+        log.info("robot %d: %.1f s choosing its goals, %.1f s waiting for its robot's legs", robot, ex.choose_s, ex.waited_s)
 
 
 def exchange(learner: RobotLearner, transport: Transport, stop: threading.Event) -> np.ndarray:
@@ -379,8 +392,10 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
                  s.model_shape, device, s.consensus, f" (from {where})" if where else "", s.compression,
                  f" (from {packed})" if packed else "")
         try:
+            for learner in learners:  # (every robot's, before any waits for its data: in process, one thread does both)
+                learner.listen(world, stop)
             for learner in learners:
-                learner.prepare(world, stop)
+                learner.prepare(stop)
             if s.algorithm == "centralized":
                 train_centralized(learners, stop)
             elif inproc:

@@ -660,6 +660,10 @@ def run_dir_problem(cfg: RunConfig, ways: WayOut = WayOut()) -> str | None:
         ended = local_time((read_summary(run_dir) or {}).get("finished"))
         return (f"{run_dir} holds a finished run{f' (it ended {ended})' if ended else ''}, which is never overwritten; "
                 f"{ways.other}, or move that one away")
+    if cfg.explore.active:  # (its learners' checkpoints hold their rounds, not where the robots were)
+        return (f"{run_dir} holds an exploring run that did not finish ({unfinished_words(run_dir)}): an exploration "
+                f"cannot be resumed (the drive, the robots' positions, goals and what they saw, is not checkpointed); "
+                f"{ways.other} to explore again")
     if not cfg.up.resume:
         return f"{run_dir} holds a run that did not finish ({unfinished_words(run_dir)}); resume it with {ways.resume}, or {ways.other}"
     return other_settings_in(cfg, ways)

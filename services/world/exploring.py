@@ -185,7 +185,7 @@ class Exploration:
             goal = got.get(i)
             if goal is None:
                 if i not in self.missed:
-                    log.warning("robot %d: no goal for leg %d within %.0f s: it stays where it is (this leg depends on "
+                    log.warning("robot %d: no goal for leg %d within %g s: it stays where it is (this leg depends on "
                                 "timing)", i, leg, waits[i])
                 self.missed.add(i)
                 self.drives[i].follow(np.zeros((0, 2)))

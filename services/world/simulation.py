@@ -282,6 +282,10 @@ def explore(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, stop: threadin
     where ``explore.starts`` puts them (or spread by the seed, or at their planned paths' starts)
     and drive in legs towards the goals their learners choose."""
     w, e = cfg.world, cfg.explore
+    if cfg.run_dir is not None and (drove := cfg.run_dir / "exploration.csv").exists() and drove.read_text().count("\n") > 1:
+        log.error("%s holds the drive of this run's robots: a world started again cannot take up a drive it lost (the "
+                  "robots' positions, goals and what they saw are not checkpointed)", drove)
+        return 2
     planned = robot_paths(cfg, plan, grid) if e.policy == "planned" else None
     try:
         starts = explore_starts(cfg, grid, planned)

@@ -44,6 +44,8 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     # when the recorder ends a run
     "recorder": ("start_timeout_s", "linger_s", "rejoin_timeout_s", "stall_timeout_s", "unreachable_timeout_s"),
     "faults": (),
+    # how long the world and a robot wait for a goal (a robot that goes on without one says so)
+    "explore": ("goal_wait_s",),
     # the launcher (a replay's settings are the world's and lidar's fields it sets); where the services run and the
     # network between their hosts (routers, namespaces, link rates and loss: how fast the States arrive, not what they are)
     "up": ("record", "replay", "observer", "viewer", "stop_grace_s", "observer_grace_s", "learner_grace_s", "start_timeout_s",
@@ -73,6 +75,8 @@ COUNTED: dict[str, tuple[str, ...]] = {
                 "topk_density", "quant_bits", "lowrank_rank", "keyframe_every", "robust", "robust_spread_factor", "robust_pull_factor",
                 "sigma_max_weight"),
     "faults": ("link_success", "duplicate", "delay_s", "links", "seed", "per_round", "attack", "attackers"),
+    "explore": ("policy", "starts", "decide_every", "leg_s", "distance_m", "stall_legs", "stall_gain", "separation_m",
+                "min_travel_m", "clearance_m", "map_resolution_m", "information", "mc_samples", "min_gain"),
 }
 
 

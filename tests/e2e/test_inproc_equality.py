@@ -28,9 +28,14 @@ THIN = ["--set", "learner.consensus=sigma", "--set", "learner.compression=quant"
         "--set", "learner.exchange_every=3", "--set", "learner.unseen_weight=0.05"]  # coverage travels in the States
 
 
-# The Bayesian network (sampled weights: the seeds must line up too); thin links with the fault
-# trials, to keep the everyday tier short.
-@pytest.mark.parametrize("links", [[], pytest.param(THIN, marks=pytest.mark.faults)], ids=["bnn", "bnn-sigma-quant-every-3"])
+EXPLORE = ["--explore", "uncertainty", "--set", "explore.decide_every=3"]  # goals at rounds 3, 6 and 9, legs driven between
+
+
+# The Bayesian network (sampled weights: the seeds must line up too); exploring (the robots drive where
+# their maps' std says, in legs between the rounds: the same paths both ways); thin links with the
+# fault trials, to keep the everyday tier short.
+@pytest.mark.parametrize("links", [[], EXPLORE, pytest.param(THIN, marks=pytest.mark.faults)],
+                         ids=["bnn", "bnn-explore", "bnn-sigma-quant-every-3"])
 def test_zenoh_run_equals_inproc_run(tmp_path, links):
     extra = ["--set", "learner.model=bnn", "--set", "learner.model_shape=[2,64,32,32,1]", *links]
     zenoh = run(tmp_path / "zenoh", *extra)
@@ -48,3 +53,9 @@ def test_zenoh_run_equals_inproc_run(tmp_path, links):
         # Both count the bytes of Algorithm 1's messages as encoded on the wire (resends may differ)
         sent = zenoh["learners"][robot]["bytes_sent"], inproc["learners"][robot]["bytes_sent"]
         assert 0.7 < sent[0] / sent[1] < 1.5, sent
+    if links is EXPLORE:  # the same goals, the same driven paths (poses, distances, coverage), val_bce aside (as heard)
+        assert zenoh["exploration"] == inproc["exploration"] and zenoh["exploration"]["team_distance_m"] > 1.0
+        drives = [[line.rsplit(",", 1)[0] for line in (tmp_path / how / "exploration.csv").read_text().splitlines()]
+                  for how in ("zenoh", "inproc")]
+        assert drives[0] == drives[1]
+        assert (tmp_path / "zenoh" / "goals.csv").read_text() == (tmp_path / "inproc" / "goals.csv").read_text()

@@ -89,6 +89,8 @@ def test_an_interrupted_run_resumes_only_when_asked_and_up_twice_on_a_finished_o
     assert files(run) == finished, "the finished run's files were changed"
 
 
+# A fault trial (a learner that stops answering), run with the others (make test-faults).
+@pytest.mark.faults
 def test_a_run_that_makes_no_progress_ends_by_itself_naming_who_holds_it_up(tmp_path):
     """Every message of Algorithm 1 lost and no neighbour ever left out: the learners wait
     forever, and the recorder ends the run once nothing came for recorder.stall_timeout_s."""

@@ -9,10 +9,10 @@ from swarmmap.services.learner.collector import Collector
 from swarmmap.shared.wire.protocol import Samples, Tensor
 
 
-def samples(seq: int, last: bool = False) -> Samples:
+def samples(seq: int, last: bool = False, leg: int | None = None, leg_end: bool = False) -> Samples:
     points = np.full((10, 2), seq, np.float32)
     return Samples(run="r", sender=0, seq=seq, t=0.1 * seq, position=[0.0, 0.0], points=Tensor.of(points, "<f4"),
-                   labels=Tensor.of(np.zeros(10, np.float32), "<f4"), last=last)
+                   labels=Tensor.of(np.zeros(10, np.float32), "<f4"), last=last, leg=leg, leg_end=leg_end)
 
 
 def test_online_keeps_only_the_window_and_offline_every_scan():
@@ -37,3 +37,21 @@ def test_a_restarted_worlds_scans_are_taken_once():
         restarted.add(samples(seq, last=seq == 99))
     assert restarted.repeated == 40 and restarted.done.is_set()
     np.testing.assert_array_equal(restarted.arrays()[0], clean.arrays()[0])
+
+
+def test_an_exploring_learner_waits_for_its_legs_end_and_trains_on_the_legs_driven_so_far():
+    """Leg 0 is one scan; a leg's last scan says so. Scans of later legs (a world ahead of the
+    learner) stay out of the points of a leg before them, whenever they came."""
+    import threading
+
+    c, stop = Collector(keep=100), threading.Event()
+    c.add(samples(0, leg=0, leg_end=True))
+    assert c.wait_leg(0, 0.1, stop) and not c.wait_leg(1, 0.05, stop)
+    for seq in range(1, 4):
+        c.add(samples(seq, leg=1, leg_end=seq == 3))
+    c.add(samples(4, leg=2))
+    assert c.wait_leg(1, 0.1, stop) and not c.wait_leg(2, 0.05, stop)
+    assert c.arrays(through_leg=0)[0].shape == (10, 2) and c.arrays(through_leg=1)[0][-1, 0] == 3
+    assert c.arrays(through_leg=2)[0].shape == (50, 2) and c.arrays(2, through_leg=1)[0][0, 0] == 2
+    c.add(samples(5, leg=2, last=True))  # the robot's drive is over: no leg is waited for any more
+    assert c.wait_leg(7, 0.05, stop)

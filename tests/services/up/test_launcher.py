@@ -153,6 +153,8 @@ def test_a_run_directory_is_never_overwritten_and_resumed_only_when_asked(tmp_pa
     assert cfg(stopped, up={"resume": True}).run_id == "first", "a resumed run keeps its run id"
     (stopped / "summary.json").write_text(json.dumps({"ok": False, "status": 130}))
     assert "(it was interrupted)" in run_dir_problem(cfg(stopped))
+    exploring = cfg(stopped, explore={"policy": "frontier"}, up={"resume": True})  # (its drive is not checkpointed)
+    assert "an exploration cannot be resumed (the drive" in run_dir_problem(exploring)
 
 
 def test_resume_names_the_run_it_resumes():

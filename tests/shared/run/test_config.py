@@ -199,3 +199,18 @@ def test_a_model_shape_has_one_syntax_on_the_command_line_in_the_environment_and
     assert parse_shape("[2, 64, 32, 1]") == parse_shape("2,64,32,1") == parse_shape(["2", "64", "32", "1"]) == want
     with pytest.raises(ConfigError, match=r"learner.model_shape: a model shape is a list of layer widths like 2,64,32,1"):
         load(["up", "--set", "learner.model_shape=2,sixty,1"])
+
+
+@pytest.mark.parametrize("cli,why", [
+    ({"explore": {"policy": "uncertainty"}}, "needs a model with a std: learner.model fourier has none"),
+    ({"explore": {"policy": "frontier", "starts": "1,2;3,4"}}, "gives 2 start.s. for 3 robot"),
+    ({"explore": {"policy": "frontier", "starts": "1,2;3,4;x,5"}}, "'x,5' is no \"x,y\" pair"),
+    ({"explore": {"policy": "planned"}, "world": {"dataset": ["a.log"]}}, "world.dataset"),
+    ({"explore": {"policy": "frontier"}, "learner": {"rounds": 10}}, "no goal before round decide_every 10"),
+    ({"explore": {"policy": "frontier"}, "learner": {"exchange_every_s": 2.0}}, "exchange_every_s"),
+])
+def test_an_exploration_that_cannot_run_is_refused_naming_why(cli, why):
+    with pytest.raises(ConfigError, match=why):
+        resolve(cli, preset="smoke", environ={})
+    ok = resolve({"explore": {"policy": "uncertainty", "starts": "1,2; 3,4 ;5,6"}}, preset="quickstart", environ={})
+    assert ok.explore.active and not resolve(preset="smoke", environ={}).explore.active

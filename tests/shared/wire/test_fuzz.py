@@ -15,6 +15,7 @@ from swarmmap.shared.wire.codec import decode, encode, encode_state
 from swarmmap.shared.wire.compression import compressor
 from swarmmap.shared.wire.protocol import (
     MESSAGE_TYPES,
+    Goal,
     Metrics,
     ProtocolError,
     RoundComplete,
@@ -51,6 +52,8 @@ def valid_messages() -> list[bytes]:
                         val_points=Tensor.of(np.zeros((2, 2), np.float32)), val_labels=Tensor.of(np.zeros(2, np.float32)),
                         robots=3)),
         encode(RunDone(run=RUN, sender=2, ok=True, reason="all finished", finished=[0, 1, 2])),
+        encode(Goal(run=RUN, sender=2, leg=3, round=30, x=1.0, y=2.0, path=Tensor.of(np.array([[0, 0], [1, 2]], np.float32)),
+                    reason="std 3.1 over 2.2 m")),
     ]
 
 

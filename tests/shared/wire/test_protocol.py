@@ -7,7 +7,19 @@ import numpy as np
 import pytest
 
 from swarmmap.shared.wire.codec import STATE_ALIGN, StateFrame, all_finite, decode, encode, encode_state, wire_dict
-from swarmmap.shared.wire.protocol import Keys, Metrics, ProtocolError, RoundComplete, Samples, Scan, State, Tensor, WorldMap
+from swarmmap.shared.wire.protocol import (
+    MAX_GOAL_PATH,
+    Goal,
+    Keys,
+    Metrics,
+    ProtocolError,
+    RoundComplete,
+    Samples,
+    Scan,
+    State,
+    Tensor,
+    WorldMap,
+)
 
 RUN = "run-1"
 
@@ -47,6 +59,11 @@ def test_tensor_bytes_are_little_endian_float32():
     WorldMap(run=RUN, sender=0, resolution=0.1, origin=[0.0, 0.0], grid=Tensor.of(np.eye(3, dtype=np.uint8)),
              val_points=Tensor.of(np.zeros((2, 2), np.float32)), val_labels=Tensor.of(np.zeros(2, np.float32)),
              robots=3),
+    Goal(run=RUN, sender=1, leg=2, round=20, x=1.5, y=-2.0, path=Tensor.of(np.array([[0, 0], [1.5, -2]], np.float32)),
+         reason="std 4.0 over 2.5 m"),
+    Goal(run=RUN, sender=1, leg=3, round=30, done=True, reason="no uncertainty goal left"),
+    Samples(run=RUN, sender=0, seq=4, t=0.8, position=[0.0, 0.0], points=Tensor.of(np.zeros((1, 2), np.float32)),
+            labels=Tensor.of(np.zeros(1, np.float32)), leg=2, leg_end=True),
 ])
 def test_every_message_kind_round_trips(message):
     assert decode(encode(message), type(message), run=RUN) == message
@@ -282,6 +299,16 @@ def test_an_object_bomb_is_refused_within_its_kinds_bounds_without_being_unpacke
     tracemalloc.stop()
     assert err.value.reason in ("malformed", "oversized")
     assert peak < 2_000_000, f"{peak} bytes allocated to refuse it"
+
+
+def test_a_goal_needs_a_path_of_points_unless_it_is_done_and_a_bounded_one():
+    path = np.zeros((MAX_GOAL_PATH + 1, 2), np.float32)
+    for bad, why in [({}, "needs a path"), ({"path": Tensor.of(np.zeros((0, 2), np.float32))}, "needs a path"),
+                     ({"path": Tensor.of(np.zeros((3, 3), np.float32))}, "shape"),
+                     ({"path": Tensor.of(path)}, "at most"), ({"path": Tensor.of(path[:2]), "leg": 0}, "leg")]:
+        fields = {"run": RUN, "sender": 1, "leg": 1, "round": 10, **bad}
+        with pytest.raises(ValueError, match=why):
+            Goal(**fields)
 
 
 def test_a_payload_whose_header_does_not_come_first_is_refused_before_its_body():

@@ -27,7 +27,10 @@ def test_each_identity_speaks_on_its_own_keys_and_reads_what_its_service_needs()
     keys = Keys("swarmmap", "r")
     speaks, reads = policy_keys(keys, Access(3, neighbours={0: {1}, 1: {0, 2}, 2: {1}}))
     assert speaks["lidar-1"] == sorted([keys.alive("lidar", 1), keys.samples(1)])
-    assert reads["learner-0"] == sorted([keys.alive(), keys.run_done(), keys.samples(0), keys.world_map(), *keys.exchange(1)])
+    assert reads["learner-0"] == sorted([keys.alive(), keys.run_done(), keys.samples(0), keys.world_map(), *keys.exchange(1),
+                                         keys.scan(0), keys.scan(1), keys.goal(1)])  # (exploring: its team's scans and goals)
+    assert keys.learner(0) in speaks["learner-0"] and keys.alive("explore", 0) in speaks["learner-0"]  # (its goal on its own keys)
+    assert keys.goal("*") in reads["world-0"] and keys.goal("*") not in speaks["world-0"]
     assert keys.state("*") not in reads["status-0"] and keys.state("*") in reads["observer-0"]
     speaks, reads = policy_keys(keys, Access(3, inproc_learner=True))  # one learner process serves every robot
     assert keys.learner(2) in speaks["learner-0"] and speaks["learner-2"] == [keys.alive("learner", 2)]
