@@ -34,7 +34,7 @@ from swarmmap.shared.wire.protocol import Goal, Scan, Tensor, WorldMap
 from swarmmap.shared.world.explore import Claims, Sensor, frontier_goal, uncertainty_goal
 from swarmmap.shared.world.explore import Goal as Choice
 from swarmmap.shared.world.floorplan import OccupancyGrid
-from swarmmap.shared.world.logodds import build_logodds
+from swarmmap.shared.world.logodds import LogOddsGrid, build_logodds
 
 log = logging.getLogger("learner")
 Data = tuple[np.ndarray, np.ndarray]
@@ -52,7 +52,8 @@ class Explorer:
         self.pub = bus.publisher(bus.keys.goal(robot))
         self.grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
         self.heard: dict[tuple[int, int], Goal] = {}
-        self.scans: list[Scan] = []  # frontier: its own and its neighbours' scans
+        self.scans: list[Scan] = []  # frontier: its own and its neighbours' scans since its last goal
+        self.counts: LogOddsGrid | None = None  # frontier: the log-odds grid of those before
         self.ended: dict[int, int] = {}  # robot -> newest leg whose end its scans showed
         self.cond = threading.Condition()
         self.data: Data | None = None
@@ -92,8 +93,12 @@ class Explorer:
             return self.data
         if k % every or not 1 <= k // every <= self.legs:
             return None
-        leg = k // every  # (its robot's drive may be over: then no goal, and no wait)
-        if not self.collector.done.is_set():
+        leg = k // every
+        if self.collector.done.is_set():  # its robot's drive is over: no wait, and a word its teammates need not wait for
+            if self.e.policy != "planned":
+                self.pub.put(Goal(run=self.cfg.run_id, sender=self.robot, leg=leg, round=k, done=True,
+                                  reason="its drive is over"))
+        else:
             t0 = time.monotonic()
             if self.e.policy != "planned":
                 self.publish(leg, k, stop)
@@ -144,16 +149,22 @@ class Explorer:
                                 sensor=self.sensor(), kind=e.information, min_gain=e.min_gain, min_travel=e.min_travel_m)
 
     def frontier(self, pose: np.ndarray, claims: Claims, leg: int, stop: threading.Event) -> Choice | None:
+        """The nearest frontier of the log-odds grid of its team's scans of legs before ``leg``: the
+        counts of the scans new since the last goal added to those kept (the scans themselves are not)."""
         team = [self.robot, *self.neighbours]
         self.wait_for(lambda: all(self.ended.get(j, -1) >= leg - 1 for j in team), stop)
         with self.cond:
-            scans = [s for s in self.scans if s.leg is not None and s.leg < leg]
-        if not scans:
-            log.warning("robot %d: no scan of its own or its neighbours' heard before leg %d: no frontier", self.robot, leg)
-            return None
+            new = [s for s in self.scans if s.leg is not None and s.leg < leg]
+            self.scans = [s for s in self.scans if s.leg is None or s.leg >= leg]
         res = self.e.map_resolution_m
         _, shape = self.grid.centres(res)
-        grid = build_logodds(shape, self.grid.origin, res, np.array([s.pose[:2] for s in scans]),
-                             np.stack([s.angles.numpy() for s in scans]), np.stack([s.ranges.numpy() for s in scans]),
-                             np.stack([s.hit.numpy().astype(bool) for s in scans]))
-        return frontier_goal(self.robot, pose, grid, claims, clearance=self.e.clearance_m, min_travel=self.e.min_travel_m)
+        if new:
+            part = build_logodds(shape, self.grid.origin, res, np.array([s.pose[:2] for s in new]),
+                                 np.stack([s.angles.numpy() for s in new]), np.stack([s.ranges.numpy() for s in new]),
+                                 np.stack([s.hit.numpy().astype(bool) for s in new]))
+            self.counts = part if self.counts is None else self.counts.plus(part)
+        if self.counts is None:
+            log.warning("robot %d: no scan of its own or its neighbours' heard before leg %d: no frontier", self.robot, leg)
+            return None
+        return frontier_goal(self.robot, pose, self.counts, claims, clearance=self.e.clearance_m,
+                             min_travel=self.e.min_travel_m)

@@ -56,6 +56,11 @@ class LogOddsGrid:
         p = self.probability().ravel()[index]
         return np.where(inside, p, np.float32(0.5))
 
+    def plus(self, other: LogOddsGrid, model: InverseSensorModel | None = None) -> LogOddsGrid:
+        """The grid of this one's beams and ``other``'s (the same cells; both built with counts)."""
+        hits, misses = self.hits + other.hits, self.misses + other.misses
+        return LogOddsGrid(log_odds(hits, misses, model or InverseSensorModel()), self.resolution, self.origin, hits, misses)
+
     def known(self) -> np.ndarray:
         """Cells some beam reached (H, W) bool."""
         return self.logodds != 0 if self.hits is None else (self.hits + self.misses) > 0
@@ -99,11 +104,15 @@ def build_logodds(shape: tuple[int, int], origin: tuple[float, float], resolutio
             misses += np.bincount(cell[new], minlength=n_cells)
         # A beam crossing a cell in two slabs counts twice there at most: slabs are 128 cells long.
         hits += np.bincount(end_cell[ka & end_in], minlength=n_cells)
-    l_hit, l_miss = logit(model.p_hit), logit(model.p_miss)
-    lo_, hi_ = logit(model.p_min), logit(model.p_max)
-    grid.logodds = np.clip(hits * l_hit + misses * l_miss, lo_, hi_).reshape(shape).astype(np.float32)
     grid.hits, grid.misses = hits.reshape(shape), misses.reshape(shape)
+    grid.logodds = log_odds(grid.hits, grid.misses, model)
     return grid
+
+
+def log_odds(hits: np.ndarray, misses: np.ndarray, model: InverseSensorModel) -> np.ndarray:
+    """Each cell's log-odds from the beams that ended in it and crossed it, clamped (float32)."""
+    l_hit, l_miss = logit(model.p_hit), logit(model.p_miss)
+    return np.clip(hits * l_hit + misses * l_miss, logit(model.p_min), logit(model.p_max)).astype(np.float32)
 
 
 def bce(p: np.ndarray, labels: np.ndarray, eps: float = 1e-6) -> float:

@@ -209,3 +209,16 @@ def test_a_drive_follows_its_path_and_stops_before_a_wall_its_map_missed():
     assert d.blocked and np.allclose(d.pose, [1.0, 1.0]), "it stops rather than drive into the wall"
     d.step(1.0, wall)
     assert np.allclose(d.pose, [1.0, 1.0]) and d.driven == pytest.approx(2.0)
+
+
+def test_a_log_odds_grid_of_two_batches_of_scans_is_the_sum_of_theirs():
+    """The frontier policy keeps counts, not scans: the grid of scans A and B is A's plus B's."""
+    from swarmmap.shared.world.logodds import build_logodds
+
+    rng = np.random.default_rng(3)
+    pos, ang = rng.uniform(1, 3, (6, 2)), rng.uniform(-np.pi, np.pi, (6, 40))
+    rng_, hit = rng.uniform(0.2, 2.0, (6, 40)), rng.uniform(size=(6, 40)) < 0.7
+    grid = lambda s: build_logodds((40, 40), (0.0, 0.0), 0.1, pos[s], ang[s], rng_[s], hit[s])  # noqa: E731
+    both, summed = grid(slice(None)), grid(slice(0, 2)).plus(grid(slice(2, 6)))
+    assert (both.hits == summed.hits).all() and (both.misses == summed.misses).all()
+    assert np.array_equal(both.logodds, summed.logodds) and both.known().any()
