@@ -7,7 +7,8 @@ On each plan (a procedural one, the kit's CubiCasa5K plan, DiNNO's floor plan) a
 (spread over the plan by the seed, given as ``--starts``): ``planned`` (the paths planned before the
 run, driven in legs while the learners train), ``frontier`` (nearest frontier of a log-odds grid of
 the robot's and its neighbours' scans), ``uncertainty`` with the quickstart's Bayesian network, and
-``uncertainty`` with an MC-dropout network. Prints per run the team distance at which coverage of
+``uncertainty`` with an MC-dropout network (without the prior on unseen space, which shapes a
+Bayesian network's weight draws only). Prints per run the team distance at which coverage of
 the reachable free space first reached 0.9 (from exploration.csv), the final coverage, the team's
 mean val_bce at the team distance where ``planned`` ended its paths (each robot's newest val_bce
 in exploration.csv at the first scan where the team had driven that far; a policy whose drive
@@ -45,7 +46,7 @@ POLICIES = {  # name: up arguments
     "planned": ["--explore", "planned"],
     "frontier": ["--explore", "frontier"],
     "uncertainty": ["--explore", "uncertainty"],
-    "uncertainty-dropout": ["--explore", "uncertainty", "--model", "dropout"],
+    "uncertainty-dropout": ["--explore", "uncertainty", "--model", "dropout", "--set", "learner.unseen_weight=0"],
 }
 
 

@@ -27,6 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmmap.services.learner.collector import Collector
+from swarmmap.services.learner.node import Node
 from swarmmap.shared.learning.bnn import predict_mean_std
 from swarmmap.shared.run.config import RunConfig
 from swarmmap.shared.wire.bus import Bus
@@ -35,20 +36,21 @@ from swarmmap.shared.world.explore import Claims, Sensor, frontier_goal, uncerta
 from swarmmap.shared.world.explore import Goal as Choice
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid, build_logodds
+from swarmmap.shared.world.unseen import Coverage
 
 log = logging.getLogger("learner")
 Data = tuple[np.ndarray, np.ndarray]
 
 
 class Explorer:
-    """Robot ``robot``'s goals and the legs its learner trains on; ``model()`` is its current network."""
+    """Robot ``robot``'s goals and the legs its learner trains on; ``node()`` is its learner's node (its network, and
+    the cells its team has data on where it keeps them)."""
 
     def __init__(self, cfg: RunConfig, robot: int, bus: Bus, collector: Collector, neighbours: set[int],
-                 model: Callable[[], object], world: WorldMap):
-        self.cfg, self.e, self.robot, self.collector, self.model = cfg, cfg.explore, robot, collector, model
-        self.keys = bus.keys
+                 node: Callable[[], Node], world: WorldMap):
+        self.cfg, self.e, self.robot, self.collector, self.node = cfg, cfg.explore, robot, collector, node
         self.neighbours = sorted(neighbours)
-        self.legs = (cfg.learner.rounds - 1) // self.e.decide_every  # as the world counts them
+        self.legs = cfg.legs()
         self.pub = bus.publisher(bus.keys.goal(robot))
         self.grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
         self.heard: dict[tuple[int, int], Goal] = {}
@@ -65,6 +67,8 @@ class Explorer:
                 bus.subscribe(bus.keys.scan(j), Scan, self.add_scan)
 
     def add_goal(self, msg: Goal) -> None:
+        if msg.leg > self.legs:  # (no such leg: never kept)
+            return
         with self.cond:
             self.heard.setdefault((msg.sender, msg.leg), msg)
             self.cond.notify_all()
@@ -95,13 +99,10 @@ class Explorer:
             return None
         leg = k // every
         if self.collector.done.is_set():  # its robot's drive is over: no wait, and a word its teammates need not wait for
-            if self.e.policy != "planned":
-                self.pub.put(Goal(run=self.cfg.run_id, sender=self.robot, leg=leg, round=k, done=True,
-                                  reason="its drive is over"))
+            self.pub.put(Goal(run=self.cfg.run_id, sender=self.robot, leg=leg, round=k, done=True, reason="its drive is over"))
         else:
             t0 = time.monotonic()
-            if self.e.policy != "planned":
-                self.publish(leg, k, stop)
+            self.publish(leg, k, stop)
             self.choose_s += time.monotonic() - t0
             t0 = time.monotonic()
             if not self.collector.wait_leg(leg, self.e.goal_wait_s + self.cfg.learner.collect_timeout_s, stop):
@@ -112,7 +113,13 @@ class Explorer:
         return self.data
 
     def publish(self, leg: int, k: int, stop: threading.Event) -> None:
-        """Robot ``robot``'s goal for ``leg``, chosen after its lower-numbered neighbours' (theirs held apart)."""
+        """Robot ``robot``'s goal for ``leg``, chosen after its lower-numbered neighbours' (theirs held apart);
+        planned, its word that it reached the leg's round (the world drives each leg once its learners did)."""
+        pose = np.asarray(self.collector.position or (0.0, 0.0), np.float64)
+        if self.e.policy == "planned":
+            self.pub.put(Goal(run=self.cfg.run_id, sender=self.robot, leg=leg, round=k, x=float(pose[0]), y=float(pose[1]),
+                              path=Tensor.of(pose[None], "<f4"), reason="its planned path"))
+            return
         before = [j for j in self.neighbours if j < self.robot]
         if not self.wait_for(lambda: all((j, leg) in self.heard for j in before), stop):
             log.warning("robot %d: goals of neighbour(s) %s for leg %d did not come within %.0f s: chosen without them "
@@ -120,7 +127,6 @@ class Explorer:
                         leg, self.e.goal_wait_s)
         claims = Claims({j: (g.x, g.y) for (j, g_leg), g in list(self.heard.items()) if g_leg == leg and not g.done},
                         self.e.separation_m)
-        pose = np.asarray(self.collector.position or (0.0, 0.0), np.float64)
         choice = self.uncertainty(pose, claims, leg) if self.e.policy == "uncertainty" else self.frontier(pose, claims, leg, stop)
         run, me = self.cfg.run_id, self.robot
         if choice is None:
@@ -137,14 +143,15 @@ class Explorer:
         return Sensor(beams=min(w.lidar_beams, 72), max_range=w.lidar_max_range_m)
 
     def uncertainty(self, pose: np.ndarray, claims: Claims, leg: int) -> Choice | None:
-        e, res = self.e, self.e.map_resolution_m
+        e, res, node = self.e, self.e.map_resolution_m, self.node()
         pts, (h, w) = self.grid.centres(res)
-        mean, std = predict_mean_std(self.model(), pts.astype(np.float32), samples=e.mc_samples, seed=leg)
+        mean, std = predict_mean_std(node.model, pts.astype(np.float32), samples=e.mc_samples, seed=leg)
         mean, std = mean.reshape(h, w).astype(np.float64), std.reshape(h, w)
         points, labels = self.data
-        hits = points[labels > 0.5]
-        cells = OccupancyGrid(np.zeros((h, w), np.uint8), res, self.grid.origin).cells(hits)
-        mean[cells[0][cells[2]], cells[1][cells[2]]] = 1.0  # where its own beams ended: a wall, whatever it learned
+        goal_grid = OccupancyGrid(np.zeros((h, w), np.uint8), res, self.grid.origin)
+        rows, cols, inside = goal_grid.cells(points[labels > 0.5])
+        mean[rows[inside], cols[inside]] = 1.0  # where its own beams ended: a wall, whatever it learned
+        std = np.where(observed(goal_grid, points, pts, node.coverage), e.seen_weight * std, std)
         return uncertainty_goal(self.robot, pose, mean, std, self.grid.origin, res, claims, clearance=e.clearance_m,
                                 sensor=self.sensor(), kind=e.information, min_gain=e.min_gain, min_travel=e.min_travel_m)
 
@@ -168,3 +175,18 @@ class Explorer:
             return None
         return frontier_goal(self.robot, pose, self.counts, claims, clearance=self.e.clearance_m,
                              min_travel=self.e.min_travel_m)
+
+
+def observed(grid: OccupancyGrid, points: np.ndarray, centres: np.ndarray, coverage: Coverage | None) -> np.ndarray:
+    """(H, W) bool: the cells of ``grid`` holding some of the robot's training ``points``, or (its
+    prior's ``coverage``, with ``centres`` the grid's cell centres) that its teammates said they have data on."""
+    out = np.zeros(grid.grid.shape, bool)
+    rows, cols, inside = grid.cells(points)
+    out[rows[inside], cols[inside]] = True
+    if coverage is not None:
+        c = np.floor((centres - coverage.origin) / coverage.cell).astype(np.int64)
+        ok = (c[:, 1] >= 0) & (c[:, 1] < coverage.shape[0]) & (c[:, 0] >= 0) & (c[:, 0] < coverage.shape[1])
+        theirs = np.zeros(len(centres), bool)
+        theirs[ok] = coverage.others[c[ok, 1], c[ok, 0]]
+        out |= theirs.reshape(out.shape)
+    return out

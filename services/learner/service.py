@@ -121,8 +121,7 @@ class RobotLearner:
             raise LearnerError(str(exc), 2) from None
         self.neighbours = self.graph[self.robot]
         if self.cfg.explore.active:
-            self.explorer = Explorer(self.cfg, self.robot, self.bus, self.collector, self.neighbours, lambda: self.node.model,
-                                     world)
+            self.explorer = Explorer(self.cfg, self.robot, self.bus, self.collector, self.neighbours, lambda: self.node, world)
             self.bus.announce(self.robot, service="explore")
 
     def prepare(self, stop: threading.Event) -> None:
@@ -131,6 +130,9 @@ class RobotLearner:
         self.val_x = torch.from_numpy(world.val_points.numpy().copy()).to(self.device)
         self.val_y = torch.from_numpy(world.val_labels.numpy().copy()).to(self.device)
         self.doc = self.checkpoints.resumable() if self.checkpoints is not None else None
+        if self.doc is not None and self.explorer is not None:
+            raise LearnerError(f"robot {self.robot}: an exploring learner cannot take up its robot's drive from "
+                               f"{self.checkpoints.path} (the scans of the legs driven are gone): the run stops", 2)
         if self.doc is not None:
             self.points, self.labels = self.checkpoints.points(self.doc)
             return

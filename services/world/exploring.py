@@ -4,7 +4,8 @@ The drive goes in legs of ``explore.leg_s`` simulated seconds, tied to the learn
 that the same seed gives the same paths whatever the timing: leg 0 is one scan from each robot's
 start; before leg L (L >= 1) the world waits for each driving robot's Goal of leg L, which its
 learner chooses at training round L x ``explore.decide_every`` from what it learned of legs
-0..L-1; during the leg each robot follows its goal's path (planned: its planned path) at
+0..L-1 (planned: its word that it reached that round); during the leg each robot follows its
+goal's path (planned: its planned path, which it follows on if its learner's word does not come) at
 ``world.speed_mps``, scanning at ``world.lidar_rate_hz``; the robot's last scan of the leg has
 ``leg_end`` set, and its learner trains on legs 0..L from then on. A robot stops where its real
 LiDAR shows a return on the path ahead (its map was wrong there: its learner re-plans at the
@@ -50,13 +51,16 @@ MISSED_GOAL_WAIT_S = 2.0  # the wait for a robot whose last goal never came (a l
 
 
 class Goals:
-    """The Goals heard (robot, leg) -> Goal, for the drive to wait on."""
+    """The Goals heard (robot, leg) -> Goal of legs 1..``legs``, for the drive to wait on."""
 
-    def __init__(self) -> None:
+    def __init__(self, legs: int) -> None:
+        self.legs = legs
         self.held: dict[tuple[int, int], Goal] = {}
         self.cond = threading.Condition()
 
     def add(self, msg: Goal) -> None:
+        if msg.leg > self.legs:  # (no such leg: never kept)
+            return
         with self.cond:
             self.held.setdefault((msg.sender, msg.leg), msg)  # (the first word of a leg counts)
             self.cond.notify_all()
@@ -133,7 +137,7 @@ class Exploration:
     def __init__(self, cfg: RunConfig, sim, grid: OccupancyGrid, starts: np.ndarray, planned: list[np.ndarray] | None,
                  goals: Goals, bce: LatestBce, publish: Callable[..., None]):
         self.cfg, self.sim, self.goals, self.bce, self.publish = cfg, sim, goals, bce, publish
-        e, w = cfg.explore, cfg.world
+        w = cfg.world
         self.drives = [Drive(s.copy(), speed=w.speed_mps, clearance=BODY_RADIUS_M + 0.03, lookahead=0.6) for s in starts]
         if planned is not None:
             for d, path in zip(self.drives, planned):
@@ -149,7 +153,7 @@ class Exploration:
         self.bumps = [0] * cfg.robots
         self.missed: set[int] = set()
         self.hits = [np.zeros((0, 2))] * cfg.robots
-        self.legs = (cfg.learner.rounds - 1) // e.decide_every  # the learners choose goals for legs 1..legs
+        self.legs = cfg.legs()  # the learners choose goals for legs 1..legs
         self.out = RowLog(cfg.run_dir / "exploration.csv") if cfg.run_dir is not None else None
         self.goal_log = RowLog(cfg.run_dir / "goals.csv", GOAL_COLUMNS) if cfg.run_dir is not None else None
         self.t = 0.0
@@ -159,8 +163,7 @@ class Exploration:
         for leg in range(1, self.legs + 1):
             if stop.is_set() or all(self.done):
                 break
-            if not self.planned:
-                self.take_goals(leg, stop)
+            self.take_goals(leg, stop)  # (planned: the learners' word that they reached the leg's round)
             self.drive_leg(leg, stop)
         for i in range(self.cfg.robots):
             if not self.done[i]:  # (stopped)
@@ -185,12 +188,15 @@ class Exploration:
             goal = got.get(i)
             if goal is None:
                 if i not in self.missed:
-                    log.warning("robot %d: no goal for leg %d within %g s: it stays where it is (this leg depends on "
-                                "timing)", i, leg, waits[i])
+                    log.warning("robot %d: no goal for leg %d within %g s: it %s (this leg depends on timing)", i, leg,
+                                waits[i], "drives on" if self.planned else "stays where it is")
                 self.missed.add(i)
-                self.drives[i].follow(np.zeros((0, 2)))
+                if not self.planned:
+                    self.drives[i].follow(np.zeros((0, 2)))
                 continue
             self.missed.discard(i)
+            if self.planned:  # (its path was planned before the run)
+                continue
             if self.goal_log is not None:
                 self.goal_log.row(i, leg, self.t, goal.x, goal.y, int(goal.done))
             if goal.done:

@@ -299,7 +299,7 @@ def explore(cfg: RunConfig, plan: FloorPlan, grid: OccupancyGrid, stop: threadin
     log.info("exploring %s (%s) by %s: %d robots from %s; legs of %.0f s, a goal every %d rounds, %.0f m each at most",
              plan.name, plan.kind, e.policy, cfg.robots, "; ".join(f"({x:.2f}, {y:.2f})" for x, y in starts), e.leg_s,
              e.decide_every, e.distance_m)
-    goals, bce = Goals(), LatestBce()
+    goals, bce = Goals(cfg.legs()), LatestBce()
 
     def listen(bus) -> None:
         bus.subscribe(bus.keys.goal("*"), Goal, goals.add)

@@ -155,6 +155,11 @@ class RunConfig(Section):
         """Training rounds of every learner."""
         return self.learner.rounds
 
+    def legs(self) -> int:
+        """Exploring: the legs of the drive after the start (leg 0), one goal each, chosen at rounds
+        decide_every, 2 decide_every, ... below ``learner.rounds``."""
+        return (self.learner.rounds - 1) // self.explore.decide_every
+
     def report_every(self) -> int:
         """Learners report Metrics (and the observer maps their States) every this many rounds."""
         return self.learner.eval_every

@@ -76,7 +76,7 @@ COUNTED: dict[str, tuple[str, ...]] = {
                 "sigma_max_weight"),
     "faults": ("link_success", "duplicate", "delay_s", "links", "seed", "per_round", "attack", "attackers"),
     "explore": ("policy", "starts", "decide_every", "leg_s", "distance_m", "stall_legs", "stall_gain", "separation_m",
-                "min_travel_m", "clearance_m", "map_resolution_m", "information", "mc_samples", "min_gain"),
+                "min_travel_m", "clearance_m", "map_resolution_m", "information", "mc_samples", "seen_weight", "min_gain"),
 }
 
 

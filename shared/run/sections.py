@@ -283,6 +283,9 @@ class ExploreSettings(Section):
     information: Literal["std", "entropy"] = Field("std", description="uncertainty: what a cell's observation is worth, "
                                                                       "the model's std or its predictive entropy")
     mc_samples: int = Field(16, ge=2, description="uncertainty: stochastic passes for the std map a goal is chosen on")
+    seen_weight: float = Field(0.1, ge=0, le=1, description="uncertainty: what a cell's std counts for where the robot (or, "
+                                                            "with learner.unseen_weight, a teammate) has data on it: a "
+                                                            "scan there would mostly see a wall's edge again")
     min_gain: float = Field(1.0, ge=0, description="uncertainty: a robot whose best scan would bring no more than this "
                                                   "(summed std) has nowhere left to go")
     goal_wait_s: float = Field(120.0, gt=0, description="how long the world waits for a robot's goal (and a robot for "

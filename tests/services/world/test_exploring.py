@@ -31,7 +31,7 @@ def drive(tmp_path):
     starts = explore_starts(cfg, grid, None)
     sim = Simulation(plan, [s[None] for s in starts], cfg.world)
     sent: list[tuple] = []
-    goals = Goals()
+    goals = Goals(cfg.legs())
     ex = Exploration(cfg, sim, grid, starts, None, goals, LatestBce(), lambda *scan: sent.append(scan))
     yield cfg, grid, goals, ex, sent
     sim.close()
