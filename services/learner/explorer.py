@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from scipy import ndimage
 
 from swarmmap.services.learner.collector import Collector
 from swarmmap.services.learner.node import Node
@@ -32,7 +33,7 @@ from swarmmap.shared.learning.bnn import predict_mean_std
 from swarmmap.shared.run.config import RunConfig
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.protocol import Goal, Scan, Tensor, WorldMap
-from swarmmap.shared.world.explore import Claims, Sensor, frontier_goal, uncertainty_goal
+from swarmmap.shared.world.explore import FREE_BELOW, Claims, Sensor, frontier_goal, uncertainty_goal
 from swarmmap.shared.world.explore import Goal as Choice
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid, build_logodds
@@ -149,8 +150,11 @@ class Explorer:
         mean, std = mean.reshape(h, w).astype(np.float64), std.reshape(h, w)
         points, labels = self.data
         goal_grid = OccupancyGrid(np.zeros((h, w), np.uint8), res, self.grid.origin)
-        rows, cols, inside = goal_grid.cells(points[labels > 0.5])
-        mean[rows[inside], cols[inside]] = 1.0  # where its own beams ended: a wall, whatever it learned
+        hits, crossed = cells_of(goal_grid, points[labels > 0.5]), cells_of(goal_grid, points[labels <= 0.5])
+        # What its own beams showed overrides what it learned so far: free where they crossed (a doorway its model
+        # still blurs shut), a wall where they ended (a wall it has not learned yet).
+        mean = np.where(ndimage.binary_dilation(crossed) & ~hits, np.minimum(mean, FREE_BELOW / 2), mean)
+        mean[hits] = 1.0
         std = np.where(observed(goal_grid, points, pts, node.coverage), e.seen_weight * std, std)
         return uncertainty_goal(self.robot, pose, mean, std, self.grid.origin, res, claims, clearance=e.clearance_m,
                                 sensor=self.sensor(), kind=e.information, min_gain=e.min_gain, min_travel=e.min_travel_m)
@@ -177,12 +181,18 @@ class Explorer:
                              min_travel=self.e.min_travel_m)
 
 
-def observed(grid: OccupancyGrid, points: np.ndarray, centres: np.ndarray, coverage: Coverage | None) -> np.ndarray:
-    """(H, W) bool: the cells of ``grid`` holding some of the robot's training ``points``, or (its
-    prior's ``coverage``, with ``centres`` the grid's cell centres) that its teammates said they have data on."""
+def cells_of(grid: OccupancyGrid, points: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the cells of ``grid`` holding some of ``points``."""
     out = np.zeros(grid.grid.shape, bool)
     rows, cols, inside = grid.cells(points)
     out[rows[inside], cols[inside]] = True
+    return out
+
+
+def observed(grid: OccupancyGrid, points: np.ndarray, centres: np.ndarray, coverage: Coverage | None) -> np.ndarray:
+    """(H, W) bool: the cells of ``grid`` holding some of the robot's training ``points``, or (its
+    prior's ``coverage``, with ``centres`` the grid's cell centres) that its teammates said they have data on."""
+    out = cells_of(grid, points)
     if coverage is not None:
         c = np.floor((centres - coverage.origin) / coverage.cell).astype(np.int64)
         ok = (c[:, 1] >= 0) & (c[:, 1] < coverage.shape[0]) & (c[:, 0] >= 0) & (c[:, 0] < coverage.shape[1])

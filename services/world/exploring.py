@@ -130,6 +130,26 @@ def beam_ends(pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray, hit: np.
     return np.stack([pose[0] + r * np.cos(a), pose[1] + r * np.sin(a)], axis=1)
 
 
+def solid_truth(grid: OccupancyGrid, poses: np.ndarray, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scans (N, B) that end at the ground truth's solid space as well as at the walls: a plan's
+    outside is solid in its ground truth, but a beam through an exterior door would see it free
+    (and a robot would choose goals there that it can never reach)."""
+    step = grid.resolution / 2
+    t = np.arange(step, float(ranges.max(initial=0.0)) + step, step)
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=-1)  # (N, B, 2)
+    pts = poses[:, None, None, :2] + t[None, None, :, None] * d[:, :, None, :]  # (N, B, T, 2)
+    rows, cols, inside = grid.cells(pts)
+    solid = ~inside | (grid.grid[np.clip(rows, 0, grid.grid.shape[0] - 1), np.clip(cols, 0, grid.grid.shape[1] - 1)] > 0)
+    solid &= t[None, None, :] < ranges[..., None]
+    first = np.where(solid.any(axis=-1), solid.argmax(axis=-1), 0)
+    cut = solid.any(axis=-1) & (t[first] < ranges - 2 * grid.resolution)  # (not where it only rasterises a wall the beam hit)
+    ranges, hit = ranges.copy(), hit.copy()
+    ranges[cut] = t[first[cut]]
+    hit[cut] = True
+    return angles, ranges, hit
+
+
 class Exploration:
     """The drive of :mod:`this module <swarmmap.services.world.exploring>` over a :class:`Simulation`;
     ``publish(i, pose, angles, ranges, hit, leg, leg_end, last)`` sends robot i's scan."""
@@ -257,7 +277,7 @@ class Exploration:
     def scan_all(self, leg: int, end: bool) -> None:
         """Every driving robot's scan; at a leg's ``end``, whose drive ends with it."""
         poses = self.sim.poses()
-        angles, ranges, hit = self.sim.scan(poses)
+        angles, ranges, hit = solid_truth(self.grid, poses, *self.sim.scan(poses))
         for i in range(self.cfg.robots):
             if self.done[i]:
                 continue
