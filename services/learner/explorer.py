@@ -126,8 +126,9 @@ class Explorer:
             log.warning("robot %d: goals of neighbour(s) %s for leg %d did not come within %.0f s: chosen without them "
                         "(this choice depends on timing)", self.robot, [j for j in before if (j, leg) not in self.heard],
                         leg, self.e.goal_wait_s)
-        claims = Claims({j: (g.x, g.y) for (j, g_leg), g in list(self.heard.items()) if g_leg == leg and not g.done},
-                        self.e.separation_m)
+        with self.cond:  # (its subscriptions add to what it heard meanwhile)
+            claims = Claims({j: (g.x, g.y) for (j, g_leg), g in self.heard.items() if g_leg == leg and not g.done},
+                            self.e.separation_m)
         choice = self.uncertainty(pose, claims, leg) if self.e.policy == "uncertainty" else self.frontier(pose, claims, leg, stop)
         run, me = self.cfg.run_id, self.robot
         if choice is None:

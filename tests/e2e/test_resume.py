@@ -25,6 +25,8 @@ def up(run_dir, *extra):
     assert proc.returncode == 0, proc.stderr[-3000:]
 
 
+# A fault trial (a run stopped at a round and resumed from its checkpoints), run with the others (make test-faults).
+@pytest.mark.faults
 def test_resumed_run_ends_where_the_uninterrupted_one_did(tmp_path):
     # The Bayesian network (the paper's model): its checkpoints hold rho beside the means, and the
     # optimiser's state of both; a FourierNet's are a subset of that.

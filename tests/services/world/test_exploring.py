@@ -75,3 +75,20 @@ def test_a_robot_whose_goal_never_comes_stays_where_it_is_and_the_team_goes_on(d
     assert np.ptp(zero, axis=0).max() < 1e-9 and 0 in ex.missed  # robot 0 never moved
     assert ex.drives[1].driven == pytest.approx(1.5, abs=1e-6)
     assert ex.why[0].startswith("the learners' last leg") and max(s[5] for s in sent) == 3  # legs 1..(31 - 1) // 10
+
+
+def test_a_beam_ends_at_the_ground_truths_solid_space_not_only_at_walls():
+    """A plan's outside is solid in its ground truth: a beam out of an exterior door ends there
+    (the robots could never reach what it would have seen); a beam that hits a wall keeps its range."""
+    from swarmmap.services.world.exploring import solid_truth
+    from swarmmap.shared.world.floorplan import OccupancyGrid
+
+    grid = np.zeros((40, 40), np.uint8)  # 2 m x 2 m at 0.05 m, solid beyond x = 1.5 m
+    grid[:, 30:] = 1
+    truth = OccupancyGrid(grid, 0.05, (0.0, 0.0))
+    poses = np.array([[0.5, 1.0, 0.0]])
+    angles = np.array([[0.0, np.pi]])  # east: out of the door into the solid outside; west: a wall 0.5 m away
+    ranges, hit = np.array([[3.5, 0.5]]), np.array([[False, True]])
+    _, r, h = solid_truth(truth, poses, angles, ranges, hit)
+    assert r[0, 0] == pytest.approx(1.0, abs=0.03) and h[0, 0]
+    assert r[0, 1] == 0.5 and h[0, 1]
