@@ -101,7 +101,7 @@ def main() -> int:
                 if run_dir.exists() and run_state(run_dir) != "finished":
                     shutil.rmtree(run_dir)  # (an exploring run is never resumed)
                 done[policy] = up_run(run_dir, ["--preset", "quickstart", "--robots", str(robots), "--rounds", str(rounds),
-                                                "--seed", str(a.seed), "--starts", starts, "--set", "up.observer=false",
+                                                "--seed", str(a.seed), f"--starts={starts}", "--set", "up.observer=false",
                                                 *plan_args, *POLICIES[policy]])
                 runs.ended(run_dir.name)
             planned_m = done["planned"]["exploration"]["team_distance_m"] if "planned" in done else None

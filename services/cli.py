@@ -98,7 +98,8 @@ EVERYDAY = (("preset", "--preset", None), ("robots", "--robots", None), ("learne
             ("explore.policy", "--explore", "the robots choose where to drive while they learn: uncertainty (where their "
                                             "map's std is highest), frontier (the classic), planned (the planned paths, "
                                             "in legs); none: drive the planned paths, then learn (docs/exploration.md)"),
-            ("explore.starts", "--starts", "exploring: start positions \"x,y;x,y;...\" in metres in the plan's frame"),
+            ("explore.starts", "--starts", "exploring: start positions \"x,y;x,y;...\" in metres in the plan's frame "
+                                            "(--starts=-1,2;... where the first is negative)"),
             ("run_dir", "--run-dir", None),
             ("learner.device", "--device", "torch device of the learners: auto (a GPU when there is one), cpu, cuda, "
                                            "cuda:1 (the observer's: --set observer.device=...)"),
