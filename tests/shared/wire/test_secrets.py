@@ -146,7 +146,10 @@ READS = [  # (reader, key it must not receive and its publisher, what it would l
     ("learner-0", "robots/1/samples", "lidar-1", "another robot's training points", "robots/0/samples", "lidar-0"),
     ("status-0", "learners/1/state", "learner-1", "a State (2 MB: a slow status would hold up the learners)",
      "learners/1/metrics", "learner-1"),
-    ("world-0", "learners/1/metrics", "learner-1", "the learners' metrics", "run/done", "recorder-0"),
+    # (exploring, the world reads the goals it drives to and the val_bce it logs, never a State)
+    ("world-0", "learners/1/state", "learner-1", "a learner's State", "learners/1/goal", "learner-1"),
+    ("learner-0", "learners/2/goal", "learner-2", "the goal of a learner that is not its neighbour", "learners/1/goal",
+     "learner-1"),
 ]
 
 
