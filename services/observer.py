@@ -60,6 +60,7 @@ from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.compression import Decompressor
 from swarmmap.shared.wire.protocol import Goal, Keys, Metrics, ProtocolError, Scan, State, WorldMap
 from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.sensing import beam_ends
 
 log = logging.getLogger("swarmmap.observer")
 WATCH_RING = 1024  # scans and metrics that may wait for the observer before the oldest are dropped
@@ -264,8 +265,7 @@ class Observer:
         x, y, _ = scan.pose
         self.positions[i] = np.array([x, y])
         hit = scan.hit.numpy().astype(bool)
-        ang, rng = scan.angles.numpy()[hit], scan.ranges.numpy()[hit]
-        hits = np.stack([x + rng * np.cos(ang), y + rng * np.sin(ang)], axis=1)
+        hits = beam_ends(scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit)
         c = colour(i)
         self.rec.set_time("sim_time", duration=scan.t)
         self.rec.set_time("round", sequence=self.latest_round)  # so the plan view shows the robots on either timeline

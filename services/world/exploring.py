@@ -44,6 +44,7 @@ from swarmmap.shared.world.explore import (
 )
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.paths import GridPlanner
+from swarmmap.shared.world.sensing import beam_ends
 
 log = logging.getLogger("world")
 BODY_RADIUS_M = 0.1  # a TurtleBot3 Burger's footprint: the world never lets a robot's centre nearer a wall
@@ -124,12 +125,6 @@ def planned_from(starts: np.ndarray, paths: list[np.ndarray], grid: OccupancyGri
     return out
 
 
-def beam_ends(pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """The LiDAR returns of one scan as points (K, 2)."""
-    a, r = angles[hit], ranges[hit]
-    return np.stack([pose[0] + r * np.cos(a), pose[1] + r * np.sin(a)], axis=1)
-
-
 def solid_truth(grid: OccupancyGrid, poses: np.ndarray, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Scans (N, B) that end at the ground truth's solid space as well as at the walls: a plan's
@@ -185,9 +180,7 @@ class Exploration:
                 break
             self.take_goals(leg, stop)  # (planned: the learners' word that they reached the leg's round)
             self.drive_leg(leg, stop)
-        for i in range(self.cfg.robots):
-            if not self.done[i]:  # (stopped)
-                self.done[i] = True
+        self.done = [True] * self.cfg.robots  # (stopped: every drive is over)
         for f in (self.out, self.goal_log):
             if f is not None:
                 f.close()

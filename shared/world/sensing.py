@@ -20,6 +20,12 @@ def beam_angles(beams: int, fov_deg: float = 360.0) -> np.ndarray:
     return np.linspace(-half, half, beams, endpoint=not np.isclose(fov_deg, 360.0)).astype(np.float32)
 
 
+def beam_ends(position, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """The returns of one scan from ``position`` (x, y, ...) as points (K, 2): the ends of the beams that ``hit``."""
+    a, r = np.asarray(angles)[hit], np.asarray(ranges)[hit]
+    return np.stack([position[0] + r * np.cos(a), position[1] + r * np.sin(a)], axis=1)
+
+
 def sensor_model(ranges: np.ndarray, hit: np.ndarray, rng: np.random.Generator, *, noise_std: float,
                  dropout_prob: float, min_range: float, max_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A real sensor's view of ideal ranges: Gaussian range noise on returns, dropouts (no
