@@ -54,6 +54,7 @@ class Explorer:
         self.legs = cfg.legs()
         self.pub = bus.publisher(bus.keys.goal(robot))
         self.grid = OccupancyGrid(world.grid.numpy(), world.resolution, tuple(world.origin))
+        self.centres, self.shape = self.grid.centres(self.e.map_resolution_m)  # the goal map's cells, once
         self.heard: dict[tuple[int, int], Goal] = {}
         self.scans: list[Scan] = []  # frontier: its own and its neighbours' scans since its last goal
         self.counts: LogOddsGrid | None = None  # frontier: the log-odds grid of those before
@@ -146,7 +147,7 @@ class Explorer:
 
     def uncertainty(self, pose: np.ndarray, claims: Claims, leg: int) -> Choice | None:
         e, res, node = self.e, self.e.map_resolution_m, self.node()
-        pts, (h, w) = self.grid.centres(res)
+        pts, (h, w) = self.centres, self.shape
         mean, std = predict_mean_std(node.model, pts.astype(np.float32), samples=e.mc_samples, seed=leg)
         mean, std = mean.reshape(h, w).astype(np.float64), std.reshape(h, w)
         points, labels = self.data
@@ -168,10 +169,8 @@ class Explorer:
         with self.cond:
             new = [s for s in self.scans if s.leg is not None and s.leg < leg]
             self.scans = [s for s in self.scans if s.leg is None or s.leg >= leg]
-        res = self.e.map_resolution_m
-        _, shape = self.grid.centres(res)
         if new:
-            part = build_logodds(shape, self.grid.origin, res, np.array([s.pose[:2] for s in new]),
+            part = build_logodds(self.shape, self.grid.origin, self.e.map_resolution_m, np.array([s.pose[:2] for s in new]),
                                  np.stack([s.angles.numpy() for s in new]), np.stack([s.ranges.numpy() for s in new]),
                                  np.stack([s.hit.numpy().astype(bool) for s in new]))
             self.counts = part if self.counts is None else self.counts.plus(part)
