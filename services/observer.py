@@ -260,11 +260,14 @@ class Observer:
         i = scan.sender
         n = self.scans_seen.get(i, 0)
         self.scans_seen[i] = n + 1
+        hit = scan.hit.numpy().astype(bool)
+        for sink in self.sinks:
+            if sink.every_scan:
+                sink.scan(i, scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit, scan.max_range)
         if n % self.s.scan_every and not scan.last:
             return
         x, y, _ = scan.pose
         self.positions[i] = np.array([x, y])
-        hit = scan.hit.numpy().astype(bool)
         hits = beam_ends(scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit)
         c = colour(i)
         self.rec.set_time("sim_time", duration=scan.t)
@@ -274,7 +277,8 @@ class Observer:
         self.rec.log(f"world/robots/{i}/scan", rr.Points2D(self.pixel(hits), radii=1.5, colors=c))
         self.log_graph()
         for sink in self.sinks:
-            sink.scan(i, scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit, scan.max_range)
+            if not sink.every_scan:
+                sink.scan(i, scan.pose, scan.angles.numpy(), scan.ranges.numpy(), hit, scan.max_range)
 
     def log_trajectory(self, i: int, x: float, y: float) -> None:
         """Log the newest piece of robot ``i``'s trajectory (and a piece it finished, for good)."""
@@ -419,7 +423,8 @@ def observe(cfg: RunConfig, stop: threading.Event, rec: rr.RecordingStream, devi
         if (namespaces := cfg.ros2_maps()) is not None:
             from swarmmap.shared.run.rosmaps import Ros2Maps
 
-            sinks.append(Ros2Maps(namespaces, cfg.observer.std_max))
+            seen = cfg.run_dir / "maps" / "ros2-seen.npz" if cfg.run_dir is not None else None
+            sinks.append(Ros2Maps(namespaces, cfg.observer.std_max, cfg.ros2.unknown_std, seen))
             log.info("publishing the maps to ROS 2: %s and /map (nav_msgs/OccupancyGrid, transient local)",
                      ", ".join(f"/{ns}/map" for ns in namespaces))
         return watch(cfg, keys, Observer(cfg, rec, device, sinks), stop)

@@ -450,7 +450,9 @@ def exploration_section(cfg: RunConfig) -> dict | None:
 
     path = cfg.run_dir / "exploration.csv"
     try:
-        return exploration_summary(read_exploration(path), cfg.explore.policy)
+        doc = exploration_summary(read_exploration(path), cfg.explore.policy)
+        # (ROS 2 robots have no ground truth: their coverage is of the map's extent)
+        return {**doc, "coverage_of": "the map's extent" if cfg.ros2.live else "the reachable free space"}
     except (OSError, ValueError) as exc:
         log.error("no exploration section in summary.json: %s", exc)
         return None

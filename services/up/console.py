@@ -115,7 +115,8 @@ def exploration_lines(ex: dict, max_robots: int) -> list[str]:
     driven = sorted(((int(r), d) for r, d in (ex.get("robot_distance_m") or {}).items()))[:max_robots]
     at = ", ".join(f"{float(level):.0%} at {d:.1f} m" if d is not None else f"{float(level):.0%} never"
                    for level, d in (ex.get("team_distance_at_coverage") or {}).items())
-    return [f"  explored       {ex.get('policy')}: {ex.get('final_coverage', 0.0):.1%} of the reachable free space, "
+    return [f"  explored       {ex.get('policy')}: {ex.get('final_coverage', 0.0):.1%} of "
+            f"{ex.get('coverage_of', 'the reachable free space')}, "
             f"team distance {ex.get('team_distance_m', 0.0):.1f} m (coverage {at})",
             "  driven         " + "  ".join(f"robot {r} {d:.1f} m" for r, d in driven)]
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from swarmmap.shared.run.config import ConfigError, RunConfig, ZenohSettings, did_you_mean
 from swarmmap.shared.run.disk import existing, write_problem
+from swarmmap.shared.run.sections import parse_extent
 
 # Zenoh's link protocols, and those whose address is host:port.
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
@@ -42,6 +43,8 @@ class PlanFacts:
     def describe(self) -> str:
         """``plan 353 (cubicasa): 12 rooms, 14.2 x 9.8 m; paths 20.1, 18.7 m (planned); coverage 97%``."""
         if self.dataset is not None:
+            if self.kind == "ros2":
+                return f"robots {self.name}: {self.dataset}"
             return f"dataset {self.name}: {self.dataset}; map {self.size_m[0]:.1f} x {self.size_m[1]:.1f} m"
         text = f"plan {self.name} ({self.kind}): {self.rooms} room(s), {self.size_m[0]:.1f} x {self.size_m[1]:.1f} m"
         if self.path_lengths_m:
@@ -194,6 +197,14 @@ def check_run(cfg: RunConfig, *, endpoints: bool, observer: bool = True) -> Plan
     if cfg.learner.graph == "file" and cfg.learner.graph_file is not None and not cfg.learner.graph_file.is_file():
         problems.append(f"learner.graph_file: {cfg.learner.graph_file} does not exist; name a YAML/JSON list of [i, j] edges")
     facts = None
+    if cfg.ros2.live:  # (the robots are heard once the world starts)
+        if problems:
+            raise ConfigError("refusing to start (nothing was created):\n" + "\n".join(f"  {p}" for p in problems))
+        box = parse_extent(cfg.ros2.extent) if cfg.ros2.extent else None
+        size = (box[2] - box[0], box[3] - box[1]) if box else (0.0, 0.0)
+        where = f"map {size[0]:.1f} x {size[1]:.1f} m (ros2.extent)" if box else "map: what their first scans see"
+        return PlanFacts(", ".join(f"/{ns}" for ns in cfg.ros2.namespaces), "ros2", 0, size,
+                         dataset=f"ROS 2 robots heard live; {where}")
     if cfg.world.dataset:
         from swarmmap.shared.world.datasets import DatasetError
 

@@ -100,7 +100,8 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
             if w.time_scale > 0 and (ahead := t / w.time_scale - (time.monotonic() - start)) > 0:
                 stop.wait(ahead)
             _, pose, angles, ranges, hit = team.scan(i, k)
-            pubs[i].put(Scan(run=cfg.run_id, sender=i, seq=k, t=t, pose=[float(v) for v in pose], max_range=team.max_range,
+            reach = team.robots[i].log.reach(team.max_range)
+            pubs[i].put(Scan(run=cfg.run_id, sender=i, seq=k, t=t, pose=[float(v) for v in pose], max_range=reach,
                              angles=Tensor.of(angles.astype(np.float32), "<f4"), ranges=Tensor.of(ranges, "<f4"),
                              hit=Tensor.of(hit.astype(np.uint8), "|u1"), last=k == len(team.robots[i].train) - 1))
             sent += 1

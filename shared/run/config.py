@@ -109,6 +109,10 @@ class RunConfig(Section):
             (s.exchange_every_s > 0, "learner.exchange_every_s (goals are chosen at stated rounds)"),
             (s.algorithm == "centralized", "learner.algorithm centralized (no learner per robot chooses a goal)"),
             (s.rounds <= e.decide_every, f"learner.rounds {s.rounds} (no goal before round decide_every {e.decide_every})"),
+            (bool(self.ros2.namespaces and e.starts), "explore.starts (ROS 2 robots start where they are)"),
+            (bool(self.ros2.namespaces) and e.policy == "planned", "ROS 2 robots (they have no planned paths)"),
+            (bool(self.ros2.namespaces) and not self.ros2.extent,
+             "no ros2.extent (ROS 2 robots exploring need the area to map: --extent xmin,ymin,xmax,ymax)"),
         ) if bad]
         if clash:
             raise ValueError(f"explore.policy {e.policy} cannot run with " + "; ".join(clash))

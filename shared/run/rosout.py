@@ -69,6 +69,7 @@ class MapSink(Protocol):
 
     name: str
     path: str | Path
+    every_scan: bool  # it takes every scan (else every ``observer.scan_every``-th and each robot's last)
 
     def world(self, resolution: float, origin: tuple[float, float], shape: tuple[int, int], reference: np.ndarray) -> None:
         """The grid every map is laid on and the reference (trinary, the grid's shape)."""
@@ -93,6 +94,7 @@ class McapBag:
     existing folder (nothing already written is overwritten)."""
 
     name = "mcap"
+    every_scan = False
 
     def __init__(self, path: str | Path, std_max: float):
         from rosbags.rosbag2 import StoragePlugin, Writer

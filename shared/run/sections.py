@@ -241,21 +241,42 @@ class WorldSettings(Section):
         return self
 
 
-def parse_starts(text: str, robots: int) -> list[tuple[float, float]]:
-    """``"x,y;x,y;..."`` (metres, the plan's frame) as one (x, y) per robot; a ValueError naming what is wrong."""
+def parse_tuples(text: str, count: int | None, names: tuple[str, ...], what: str, noun: str = "value"
+                 ) -> list[tuple[float, ...]]:
+    """``"a,b;a,b;..."``: tuples of finite numbers named ``names``, ``count`` of them (None: any number);
+    a ValueError naming ``what`` and what is wrong."""
+    form = ",".join(names)
     parts = [p for p in text.replace(" ", "").split(";") if p]
-    if len(parts) != robots:
-        raise ValueError(f"explore.starts gives {len(parts)} start(s) for {robots} robot(s) (\"x,y;x,y;...\" in metres)")
+    if count is not None and len(parts) != count:
+        raise ValueError(f"{what} gives {len(parts)} {noun}(s) for {count} robot(s) (\"{form};{form};...\")")
     out = []
     for p in parts:
         try:
-            x, y = (float(v) for v in p.split(","))
+            values = tuple(float(v) for v in p.split(","))
         except ValueError:
-            raise ValueError(f"explore.starts: {p!r} is no \"x,y\" pair of metres") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValueError(f"explore.starts: {p!r} is not finite")
-        out.append((x, y))
+            values = ()
+        if len(values) != len(names):
+            raise ValueError(f"{what}: {p!r} is no \"{form}\"" + (" pair" if len(names) == 2 else ""))
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(f"{what}: {p!r} is not finite")
+        out.append(values)
     return out
+
+
+def parse_starts(text: str, robots: int) -> list[tuple[float, float]]:
+    """``"x,y;x,y;..."`` (metres, the plan's frame) as one (x, y) per robot; a ValueError naming what is wrong."""
+    return parse_tuples(text, robots, ("x", "y"), "explore.starts", "start")  # type: ignore[return-value]
+
+
+def parse_extent(text: str) -> tuple[float, float, float, float]:
+    """``"xmin,ymin,xmax,ymax"`` (metres); a ValueError naming what is wrong."""
+    boxes = parse_tuples(text, None, ("xmin", "ymin", "xmax", "ymax"), "ros2.extent")
+    if len(boxes) != 1:
+        raise ValueError(f"ros2.extent: {text!r}: one box \"xmin,ymin,xmax,ymax\"")
+    box = boxes[0]
+    if not (box[2] > box[0] and box[3] > box[1]):
+        raise ValueError(f"ros2.extent: {text!r}: xmax must exceed xmin and ymax ymin")
+    return box  # type: ignore[return-value]
 
 
 class ExploreSettings(Section):
@@ -638,6 +659,21 @@ class Ros2Settings(Section):
                                                       "counted and said once")
     publish: bool = Field(False, description="the observer publishes every robot's maps and the team's /map on ROS 2 "
                                              "(swarmmap ros2 sets it)")
+    live: bool = Field(False, description="the world is the ROS 2 robots themselves: it hears their scans live and, "
+                                          "exploring, sends their goals (swarmmap ros2 sets it)")
+    extent: str = Field("", description="the area the robots map, \"xmin,ymin,xmax,ymax\" in metres in the shared frame; "
+                                        "empty: what the robots' first scans saw, plus world.dataset_margin_m (exploring "
+                                        "robots need it: they go where nobody has seen)")
+    initial_poses: str = Field("", description="each robot's odometry origin in the shared frame, \"x,y,yaw;...\" "
+                                               "(metres, radians; one per namespace); empty: the odometry frames are the "
+                                               "shared frame. swarmmap ros2 publishes map -> each robot's odometry frame")
+    warmup_s: float = Field(2.0, gt=0, description="the first seconds of each robot's scans, heard before the team "
+                                                   "starts: the map's extent (unless given), the held-out validation set "
+                                                   "and, exploring, the scans its first goals are chosen from")
+    unknown_std: float = Field(0.2, gt=0, description="the published maps say -1 (unknown) where the model's std is at "
+                                                      "least this, as where no beam went")
+    serve_s: float = Field(0.0, ge=0, description="after the team finished, keep serving its final maps this long "
+                                                  "(0: until Ctrl-C)")
 
     @field_validator("namespaces")
     @classmethod
@@ -651,3 +687,17 @@ class Ros2Settings(Section):
         if len(set(names)) < len(names):
             raise ValueError("namespaces must differ: one robot each")
         return names
+
+    @model_validator(mode="after")
+    def _frames(self) -> Ros2Settings:
+        if self.extent:
+            parse_extent(self.extent)
+        if self.initial_poses:
+            parse_tuples(self.initial_poses, len(self.namespaces) or None, ("x", "y", "yaw"), "ros2.initial_poses", "pose")
+        return self
+
+    def poses(self) -> list[tuple[float, float, float]] | None:
+        """Each robot's odometry origin in the shared frame (``initial_poses``), or None."""
+        if not self.initial_poses:
+            return None
+        return parse_tuples(self.initial_poses, len(self.namespaces), ("x", "y", "yaw"), "ros2.initial_poses", "pose")  # type: ignore[return-value]

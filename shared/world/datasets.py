@@ -92,7 +92,8 @@ class LaserLog:
     def hits(self, max_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ranges, hit, valid) (N, B) for a sensor model cut at ``max_range``: a valid beam is one
         with a reading above the minimum range; it hits when its reading is below both the
-        sensor's no-return value and ``max_range`` (else its range is ``max_range``, no hit)."""
+        sensor's no-return value and ``max_range`` (else its range is the nearer of the two, no hit:
+        a sensor that sees 3.5 m says nothing of the space beyond)."""
         if max_range not in self._hits:
             self._hits[max_range] = self._cut(max_range)
         return self._hits[max_range]
@@ -101,7 +102,11 @@ class LaserLog:
         r = self.ranges
         valid = np.isfinite(r) & (r > self.min_range_m)
         hit = valid & (r < self.no_return_m) & (r < max_range)
-        return np.where(hit, r, max_range).astype(np.float32), hit, valid
+        return np.where(hit, r, self.reach(max_range)).astype(np.float32), hit, valid
+
+    def reach(self, max_range: float) -> float:
+        """How far a beam with no return is known free: ``max_range``, or the sensor's own maximum if nearer."""
+        return float(min(max_range, self.no_return_m))
 
     def endpoints(self, max_range: float) -> np.ndarray:
         """(M, 2) where every beam that hits within ``max_range`` ends (the map's extent)."""

@@ -91,16 +91,20 @@ def beams_of(log: LaserLog, scans: np.ndarray, max_range: float, every: int = 1)
 
 
 def make_team(logs: list[LaserLog], robots: int, *, max_range: float, resolution: float, holdout_every: int,
-              margin: float, samples_per_beam: int, occupied_depth: float, val_beams: int) -> Team:
+              margin: float, samples_per_beam: int, occupied_depth: float, val_beams: int,
+              extent: tuple[float, float, float, float] | None = None) -> Team:
     """The team of :func:`split_team` with its map grid, reference grid and held-out validation set
     (every ``holdout_every``-th scan's hitting beams, about ``val_beams`` a scan, labelled along
-    the beam as the streamers label training points)."""
+    the beam as the streamers label training points). The map covers every hit and pose plus
+    ``margin``, or ``extent`` (xmin, ymin, xmax, ymax) where given."""
     from swarmmap.shared.world.logodds import build_logodds
     from swarmmap.shared.world.sensing import beam_samples
 
     team = split_team(logs, robots, holdout_every)
     ends = np.concatenate([lg.endpoints(max_range) for lg in logs] + [lg.poses[:, :2] for lg in logs])
     lo, hi = ends.min(0) - margin, ends.max(0) + margin
+    if extent is not None:
+        lo, hi = np.array(extent[:2], np.float64), np.array(extent[2:], np.float64)
     shape = (int(math.ceil((hi[1] - lo[1]) / resolution)), int(math.ceil((hi[0] - lo[0]) / resolution)))
     if shape[0] * shape[1] > 40_000_000:
         raise DatasetError(logs[0].source, f"a map of {shape[1]} x {shape[0]} cells at {resolution} m: too large "
