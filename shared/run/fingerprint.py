@@ -51,7 +51,8 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     "up": ("record", "replay", "observer", "viewer", "stop_grace_s", "observer_grace_s", "learner_grace_s", "start_timeout_s",
            "restarts", "resume", "mcap", "routers", "router_links", "netns", "link_rate", "link_loss"),
     # where ROS 2 robots' scans are heard and their maps published (the scans themselves are the dataset's)
-    "ros2": ("namespaces", "scan_topic", "odom_topic", "idle_s", "wait_s", "max_input_s", "max_scans", "publish"),
+    "ros2": ("namespaces", "scan_topic", "odom_topic", "idle_s", "wait_s", "max_input_s", "max_scans", "publish", "live",
+             "extent", "initial_poses", "warmup_s", "unknown_std", "serve_s"),
 }
 
 # Fields that change what a run computes: its team, its plan and sensor, training, faults.
