@@ -58,8 +58,8 @@ COMMANDS = {
     "plugins": "List the installed parts (consensus rules, networks, dataset readers, services, attacks), built-in and "
                "from other packages, each checked.",
     "services": "List the run's kinds of service (the registry): one per run or per robot, config section, command.",
-    "ros2": "A team of ROS 2 robots: their LaserScan and Odometry heard on ROS 2, their maps published there "
-            "(nav_msgs/OccupancyGrid).",
+    "ros2": "A team of ROS 2 robots mapped live: their LaserScan and Odometry heard on ROS 2, learned from as they "
+            "come, their maps published there (nav_msgs/OccupancyGrid) and, exploring, their goals (/<ns>/goal_pose).",
 }
 SERVICES_AT = "secrets"  # the services' own commands follow this one in swarmmap --help
 

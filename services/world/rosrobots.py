@@ -65,6 +65,7 @@ class Heard:
     odom_frame: str = ""
     first_odom: tuple[float, float, float] | None = None
     last_heard: float | None = None  # (monotonic) when its newest scan came
+    layout: tuple | None = None  # its first scan's beams (count, angle_min, angle_increment): every scan's
     dropped: int = 0
 
 
@@ -145,7 +146,20 @@ class RosRobots:
                 h.dropped += 1
                 log.warning("robot %s: a scan refused: %s", self.names[i], exc)
                 return
-            h.pending.append(h.kept.scans[-1])
+            scan = h.kept.scans[-1]
+            layout = (len(scan[2]), scan[3], scan[4])
+            if h.layout is None:
+                h.layout = layout
+            elif layout != h.layout:  # another sensor, or another publisher on the topic
+                h.kept.scans.pop()
+                h.dropped += 1
+                if f"layout {i}" not in self.told:
+                    self.told.add(f"layout {i}")
+                    log.warning("robot %s: a scan of %d beams from %.3f rad by %.5f refused: not its first scan's beams "
+                                "(%d from %.3f by %.5f); another sensor, or another publisher on the topic? Further ones are "
+                                "counted", self.names[i], *layout, *h.layout)
+                return
+            h.pending.append(scan)
             if len(h.pending) > PENDING_MAX:
                 del h.pending[0]
                 h.dropped += 1

@@ -650,9 +650,10 @@ class Ros2Settings(Section):
                                   "on /<namespace>/map (and map_std)")
     scan_topic: str = Field("scan", description="each robot's LaserScan topic under its namespace")
     odom_topic: str = Field("odom", description="each robot's Odometry topic under its namespace (the LiDAR's pose)")
-    idle_s: float = Field(5.0, gt=0, description="the robots' input is over once every robot has sent scans and none came "
-                                                 "for this long")
-    wait_s: float = Field(600.0, gt=0, description="how long to wait for every robot's first scan before refusing")
+    idle_s: float = Field(5.0, gt=0, description="not exploring: the robots' input is over once no robot sent a scan for "
+                                                 "this long")
+    wait_s: float = Field(600.0, gt=0, description="how long to wait for every robot's first scans (with odometry) before "
+                                                   "refusing")
     max_input_s: float = Field(3600.0, gt=0, description="the input is over after this long, however busy (a publisher "
                                                          "that never stops cannot hold it open)")
     max_scans: int = Field(200_000, ge=1, description="scans kept per robot; beyond them its further scans are dropped, "

@@ -208,9 +208,28 @@ def test_a_model_shape_has_one_syntax_on_the_command_line_in_the_environment_and
     ({"explore": {"policy": "planned"}, "world": {"dataset": ["a.log"]}}, "world.dataset"),
     ({"explore": {"policy": "frontier"}, "learner": {"rounds": 10}}, "no goal before round decide_every 10"),
     ({"explore": {"policy": "frontier"}, "learner": {"exchange_every_s": 2.0}}, "exchange_every_s"),
+    ({"explore": {"policy": "frontier"}, "ros2": {"namespaces": ["a", "b", "c"]}}, "no ros2.extent"),
+    ({"explore": {"policy": "planned"}, "ros2": {"namespaces": ["a", "b", "c"], "extent": "0,0,5,5"}}, "no planned paths"),
+    ({"explore": {"policy": "frontier", "starts": "1,2;3,4;5,6"}, "ros2": {"namespaces": ["a", "b", "c"],
+                                                                          "extent": "0,0,5,5"}}, "start where they are"),
 ])
 def test_an_exploration_that_cannot_run_is_refused_naming_why(cli, why):
     with pytest.raises(ConfigError, match=why):
         resolve(cli, preset="smoke", environ={})
     ok = resolve({"explore": {"policy": "uncertainty", "starts": "1,2; 3,4 ;5,6"}}, preset="quickstart", environ={})
     assert ok.explore.active and not resolve(preset="smoke", environ={}).explore.active
+
+
+@pytest.mark.parametrize("ros2,why", [
+    ({"extent": "0,0,5"}, r"ros2.extent: '0,0,5' is no \"xmin,ymin,xmax,ymax\""),
+    ({"extent": "0,0,-5,5"}, "xmax must exceed xmin"),
+    ({"extent": "0,0,5,5;1,1,2,2"}, "one box"),
+    ({"namespaces": ["a", "b"], "initial_poses": "1,2,0"}, r"ros2.initial_poses gives 1 pose\(s\) for 2 robot"),
+    ({"namespaces": ["a"], "initial_poses": "1,2,inf"}, "not finite"),
+])
+def test_ros2_frames_that_cannot_be_read_are_refused_naming_the_field(ros2, why):
+    with pytest.raises(ConfigError, match=why):
+        resolve({"ros2": ros2}, preset="smoke", environ={})
+    ok = resolve({"ros2": {"namespaces": ["a", "b"], "initial_poses": "1,2,0; -1,0.5,3.14", "extent": "-2,-2,8,6"}},
+                 preset="smoke", environ={})
+    assert ok.ros2.poses() == [(1.0, 2.0, 0.0), (-1.0, 0.5, 3.14)]

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from swarmmap.shared.run.rosmaps import ros_occupancy, seen_cells
 from swarmmap.shared.run.rosout import McapBag, grid_values, scan_arrays, trinary_values
 
 
@@ -15,6 +16,23 @@ def test_grid_values_are_percent_row_major_from_the_south_west():
     assert grid_values(v).tolist() == [0, 50, 100, -1, 25, 0]
     assert grid_values(np.array([[0.125, 0.3]]), scale=0.25).tolist() == [50, 100]  # a std on the scale of std_max
     assert trinary_values(np.array([[0, 1, 2]], np.uint8)).tolist() == [0, 100, -1]
+
+
+def test_published_maps_follow_ros_conventions_walls_100_and_unknown_minus_1():
+    mean = np.array([[0.9, 0.65, 0.4], [0.1, 0.196, np.nan]])
+    seen = np.array([[True, True, True], [True, False, True]])
+    assert ros_occupancy(mean, None, None, 0.2).tolist() == [100, 100, 40, 0, 0, -1]
+    assert ros_occupancy(mean, None, seen, 0.2).tolist() == [100, 100, 40, 0, -1, -1]  # no beam went there
+    std = np.array([[0.05, 0.3, 0.0], [0.0, 0.0, 0.0]])
+    assert ros_occupancy(mean, std, seen, 0.2).tolist() == [100, -1, 40, 0, -1, -1]  # the model is unsure there
+
+
+def test_the_cells_a_scan_saw_are_those_its_beams_crossed_and_ended_in():
+    # a 1 m x 1 m grid of 0.1 m cells from (0, 0); one beam east from (0.05, 0.55) ending at 0.5 m, one north ending at 0.3 m
+    seen = seen_cells((10, 10), (0.0, 0.0), 0.1, (0.05, 0.55, 0.0), np.array([0.0, math.pi / 2]), np.array([0.5, 0.3]))
+    assert seen[5, :6].all() and not seen[5, 7:].any()  # along the first, to its end's cell
+    assert seen[5:9, 0].all() and not seen[9, 0]  # along the second
+    assert seen.sum() == 6 + 3
 
 
 def test_a_scan_with_gaps_is_laid_out_evenly_relative_to_the_heading():

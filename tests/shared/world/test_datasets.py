@@ -162,6 +162,20 @@ def test_make_team_maps_the_extent_and_holds_out_labelled_beams(tmp_path):
     assert np.allclose(pose, log.poses[team.robots[1].train[k]])
 
 
+def test_a_beam_with_no_return_is_free_only_as_far_as_its_sensor_sees_and_a_given_extent_is_the_map(tmp_path):
+    write_carmen(tmp_path / "room.log", n=12)
+    log = read_log(tmp_path / "room.log")
+    short = LaserLog(source="short", t=log.t, poses=log.poses, angles=log.angles, ranges=np.minimum(log.ranges, 3.5),
+                     no_return_m=3.5)  # a 3.5 m scanner: no return at 3.5 m
+    ranges, hit, _ = short.hits(10.0)
+    assert not hit[short.ranges >= 3.5].any() and ranges[~hit].max() == pytest.approx(3.5) and short.reach(10.0) == 3.5
+    ranges, hit, _ = log.hits(10.0)  # a SICK log's 81.83 m no-return value: free to world.lidar_max_range_m
+    assert ranges[~hit].max() == pytest.approx(10.0) and log.reach(10.0) == 10.0
+    team = make_team([log], 1, max_range=10.0, resolution=0.1, holdout_every=4, margin=0.5, samples_per_beam=10,
+                     occupied_depth=0.03, val_beams=30, extent=(-5.0, -3.0, 7.0, 3.0))
+    assert team.origin == (-5.0, -3.0) and team.shape == (60, 120)
+
+
 def test_log_odds_grid_counts_each_cell_once_per_beam():
     grid = build_logodds((10, 40), (0.0, 0.0), 0.1, np.array([[0.05, 0.05]]), np.array([[0.0, 0.0, 0.0]]),
                          np.array([[2.0, 2.0, 3.5]]), np.array([[True, True, False]]))
