@@ -4,7 +4,7 @@ container holding only its own key, signed by the start of the run, which keeps 
 memory; each service's container mounts its own run only), ends by itself and is whole and
 owned by that user; then, in the same clone, ``SWARMMAP_ROBOTS=5 docker compose up --exit-code-from recorder``
 on the same run id is refused, the finished run left as it was, and under another run id runs
-five robots (replicas of one service that claim their ids, which a restarted container keeps)
+five exploring robots (replicas of one service that claim their ids, which a restarted container keeps)
 and returns the recorder's status; a run directory holding an unfinished run with other
 settings is refused, resumed or not, and left as it was, and no container of the refused run
 stays up. A run on a real LiDAR log reads it from the data folder (SWARMMAP_DATA, mounted
@@ -168,10 +168,14 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     assert "/runs/compose holds a finished run (it ended " in logs, logs[-3000:]
     assert "never overwritten; choose another SWARMMAP_RUN_ID" in logs, logs[-3000:]
     assert {p: p.read_bytes() for p in (runs / "compose").rglob("*") if p.is_file()} == finished
-    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five"}
+    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five", "SWARMMAP_EXPLORE__POLICY": "frontier"}  # exploring
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
     assert up.returncode == 0, output(up, clone, five)
     assert_whole_run(runs / "five", robots=5, rounds=60)
+    ex = json.loads((runs / "five" / "summary.json").read_text())["exploration"]
+    assert ex["policy"] == "frontier" and ex["final_coverage"] > 0.5 and len(ex["robot_distance_m"]) == 5, ex
+    goals = (runs / "five" / "goals.csv").read_text().splitlines()
+    assert {line.split(",")[0] for line in goals[1:]} == {str(r) for r in range(5)}, goals
     assert_whole_run(runs / "compose", robots=3, rounds=60)
     assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
     learners = compose(clone, "ps", "-a", "-q", "learner", env=five).stdout.split()

@@ -49,7 +49,8 @@ def job_output(tmp_path: Path, job: str) -> str:
 
 
 def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path):
-    job, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3")
+    """An exploring team: the world drives where the learners' goals say, each service a task."""
+    job, proc = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "3", "--explore", "frontier")
     out = job_output(tmp_path, job)
     assert proc.returncode == 0 and job_state(job) == "COMPLETED", out
     assert "run succeeded: all 3 learners finished" in out
@@ -63,6 +64,10 @@ def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path)
     learners = summary["learners"].values()
     assert all(v["finished"] and v["rounds"] == 60 for v in learners)
     assert len({v["reported_pid"] for v in learners}) == 3
+    ex = summary["exploration"]
+    assert ex["policy"] == "frontier" and ex["final_coverage"] > 0.5 and all(d > 1.0 for d in ex["robot_distance_m"].values()), ex
+    goals = (run_dir / "goals.csv").read_text().splitlines()
+    assert {line.split(",")[0] for line in goals[1:]} == {"0", "1", "2"}, goals  # every learner's goals reached the world
     for name in ("config.yaml", "metrics.csv", "groundtruth.npz", "observer.json", "recording.rrd"):
         assert (run_dir / name).stat().st_size > 0, name
     entities = recording_entities(run_dir / "recording.rrd")
