@@ -44,7 +44,8 @@ def test_an_uncertainty_team_covers_the_plan_from_its_starts_and_never_enters_a_
     coverage = [r["coverage"] for r in rows]
     assert coverage == sorted(coverage) and coverage[-1] >= 0.9
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["ok"] and summary["exploration"] == exploration_summary(rows, "uncertainty")
+    assert summary["ok"] and summary["exploration"] == {**exploration_summary(rows, "uncertainty"),
+                                                       "coverage_of": "the reachable free space"}
     assert summary["exploration"]["team_distance_at_coverage"]["0.9"] is not None
     goals = read_exploration(run_dir / "goals.csv", GOAL_COLUMNS)
     assert {int(g["robot"]) for g in goals} == {0, 1, 2} and [g["leg"] for g in goals] == sorted(g["leg"] for g in goals)
