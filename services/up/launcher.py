@@ -48,6 +48,7 @@ from pathlib import Path
 
 import yaml
 
+from swarmmap.services.up.budget import Cgroups
 from swarmmap.services.up.console import Console, closing_block
 from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
 from swarmmap.services.up.preflight import PlanFacts, check_run
@@ -58,6 +59,7 @@ from swarmmap.shared.run.fingerprint import fingerprint_diff, settings_fingerpri
 from swarmmap.shared.run.progress import TeamProgress, TraversalProgress
 from swarmmap.shared.run.rundir import RunDirBusy, config_doc, hold_run_dir, local_time, read_summary, run_state
 from swarmmap.shared.run.runtime import die_with_parent
+from swarmmap.shared.run.sections import parse_budget
 from swarmmap.shared.run.slots import slots_dir
 from swarmmap.shared.wire.bus import Bus, Stopped
 from swarmmap.shared.wire.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
@@ -176,6 +178,7 @@ class Child:
     args: tuple[str, ...] = ()
     restarts: int = 0
     host: list[str] | None = None  # the command prefix that runs it on its host (a network namespace)
+    robot: int | None = None  # the robot it serves (its host's router: that robot's), None for the base host's services
 
     @property
     def name(self) -> str:
@@ -223,6 +226,7 @@ class Launcher:
         self.routers: dict[str, HostRouter] = {}  # a router per host: where each listens, whom it dials
         if self.per_host:
             self.plan_hosts()
+        self.cgroups: Cgroups | None = None  # up.budget: a control group per robot (services/up/budget.py)
 
     def plan_hosts(self) -> None:
         """A router per host (shared/wire/mesh.py): on loopback ports, or with ``up.netns`` on the
@@ -268,7 +272,8 @@ class Launcher:
         a resumed run's log goes on after the earlier ones, under a line that says so); a
         service of ``robot`` runs on that robot's host."""
         prefix, more = self.on_host(robot, client=service != "router")
-        child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", (*extra, *more), host=prefix)
+        child = Child(service, ident, None, self.run_dir / "logs" / f"{service}-{ident}.log", (*extra, *more), host=prefix,
+                      robot=robot)
         if child.log_path.exists() and child.log_path.stat().st_size:
             with child.log_path.open("a") as out:
                 out.write(f"\n--- swarmmap up: run {self.cfg.run_id} resumed at {local_time(time.time())} ---\n")
@@ -282,9 +287,16 @@ class Launcher:
         # The config file already holds the resolved environment; children must not re-read it.
         env = {k: v for k, v in os.environ.items() if not k.startswith("SWARMMAP_") and k != "SLURM_PROCID"}
         env["PYTHONUNBUFFERED"] = "1"
+        join = self.cgroups.joiner(child.robot) if self.cgroups is not None and child.robot is not None else None
+
+        def before() -> None:  # (in the child, before it runs the service)
+            die_with_parent()
+            if join is not None:
+                join()
+
         with child.log_path.open(mode) as out:
             child.proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                          preexec_fn=die_with_parent)
+                                          preexec_fn=before)
 
     def restart(self, child: Child) -> None:
         """Start a crashed service again (a learner resumes from its checkpoint and rejoins)."""
@@ -294,6 +306,18 @@ class Launcher:
         with child.log_path.open("a") as out:
             out.write(f"\n--- swarmmap up: restart {child.restarts} after exit status {child.proc.returncode} ---\n")
         self.start(child, "a")
+
+    def over_budget(self, child: Child) -> bool:
+        """Whether ``child`` was killed at its robot's memory budget (``up.budget``)."""
+        return (self.cgroups is not None and child.robot is not None and child.proc.returncode == -9
+                and self.cgroups.oom_kills(child.robot) > 0)
+
+    def reason(self, child: Child) -> str:
+        """Why ``child`` ended, for summary.json (:func:`failure_reason`; its memory budget where that killed it)."""
+        if self.over_budget(child):
+            return (f"{child.name} was killed at robot {child.robot}'s memory budget ({self.cgroups.budget}): give the "
+                    "robots more (--budget) or a smaller model")
+        return failure_reason(child)
 
     def failed(self) -> Child | None:
         """A service that exited with an error (an optional one, the observer, is told of once and
@@ -317,7 +341,7 @@ class Launcher:
             if not missing:
                 return
             if (bad := self.failed()) is not None:
-                self.failure, self.failure_code = failure_reason(bad), bad.proc.returncode
+                self.failure, self.failure_code = self.reason(bad), bad.proc.returncode
                 raise RuntimeError(f"{bad.name} exited with status {bad.proc.returncode} while starting; "
                                    f"see {bad.log_path}:\n{tail(bad.log_path)}")
             if time.monotonic() > deadline:
@@ -369,6 +393,12 @@ class Launcher:
         0 (every learner finished), 1 (it failed, also when a service refused its settings), 130 (interrupted)."""
         cfg = self.cfg
         facts = check_run(cfg, endpoints=False, observer=cfg.up.observer)  # raises before anything exists
+        if cfg.up.budget:
+            if cfg.learner.transport == "inproc":
+                raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
+                                  "every robot's learner in one process; use the zenoh transport")
+            self.cgroups = Cgroups(cfg.run_id, cfg.robots, parse_budget(cfg.up.budget))  # (a ConfigError where it cannot)
+            log.info("each robot's services in a budget of %s (cgroup %s)", self.cgroups.budget, "v2" if self.cgroups.v2 else "v1")
         self.traversal.expected = facts.expected_scans
         self.announce(facts)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -409,6 +439,8 @@ class Launcher:
             if cfg.learner.compute_slots:
                 shutil.rmtree(slots_dir(cfg.run_id), ignore_errors=True)
             self.complete_summary(time.monotonic() - t0, status)
+            if self.cgroups is not None:
+                self.cgroups.close()
             if self.console is not None:
                 self.console.close()
                 print(closing_block(self.run_dir), flush=True)
@@ -504,7 +536,8 @@ class Launcher:
                     log.error("the run failed (recorder status %d): %s; see %s", code, why, self.run_dir / "summary.json")
                 return 0 if code == 0 else 1
             for c in self.children:  # a crash is retried; a refusal (status 2: settings, checkpoint, plan) would only repeat
-                if self.restartable(c) and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts:
+                if self.restartable(c) and c.proc.poll() not in (None, 0, REFUSED) and c.restarts < self.cfg.up.restarts \
+                        and not self.over_budget(c):  # (at its memory limit it would only be killed again)
                     self.restart(c)
             if (refused := next((c for c in self.children if c.proc.poll() == REFUSED and not optional(c)), None)) is not None:
                 self.failure, self.failure_code = failure_reason(refused), REFUSED
@@ -514,7 +547,7 @@ class Launcher:
             if failed_at is None and (bad := self.failed()) is not None and bad is not recorder:  # its verdict: above
                 log.error("%s exited with status %s; ending the run. Its log (%s) ends:\n%s",
                           bad.name, bad.proc.returncode, bad.log_path, tail(bad.log_path))
-                failed_at, self.failure, self.failure_code = time.monotonic(), failure_reason(bad), bad.proc.returncode
+                failed_at, self.failure, self.failure_code = time.monotonic(), self.reason(bad), bad.proc.returncode
             if failed_at is not None and time.monotonic() - failed_at > FAILURE_GRACE_S:
                 return 1
             self.show_progress()
@@ -542,6 +575,8 @@ class Launcher:
             if c is not None:
                 entry.update(pid=c.proc.pid, exit_code=c.proc.returncode)
         summary["status"] = status
+        if self.cgroups is not None:
+            summary["budget"] = self.cgroups.report(wall)
         summary["wall_time_s"] = round(wall + summary.get("earlier_wall_time_s", 0.0), 3)  # a resumed run's attempts add up
         summary["services"] = {c.name: {"pid": c.proc.pid, "exit_code": c.proc.returncode, "restarts": c.restarts}
                                for c in self.children}

@@ -49,7 +49,7 @@ NOT_COUNTED: dict[str, tuple[str, ...]] = {
     # the launcher (a replay's settings are the world's and lidar's fields it sets); where the services run and the
     # network between their hosts (routers, namespaces, link rates and loss: how fast the States arrive, not what they are)
     "up": ("record", "replay", "observer", "viewer", "stop_grace_s", "observer_grace_s", "learner_grace_s", "start_timeout_s",
-           "restarts", "resume", "mcap", "routers", "router_links", "netns", "link_rate", "link_loss"),
+           "restarts", "resume", "mcap", "routers", "router_links", "netns", "link_rate", "link_loss", "budget"),
     # where ROS 2 robots' scans are heard and their maps published (the scans themselves are the dataset's)
     "ros2": ("namespaces", "scan_topic", "odom_topic", "idle_s", "wait_s", "max_input_s", "max_scans", "publish", "live",
              "extent", "initial_poses", "warmup_s", "unknown_std", "serve_s"),

@@ -5,6 +5,8 @@ models and options). :mod:`swarmmap.shared.run.config` puts them together into a
 from __future__ import annotations
 
 import math
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -277,6 +279,32 @@ def parse_extent(text: str) -> tuple[float, float, float, float]:
     if not (box[2] > box[0] and box[3] > box[1]):
         raise ValueError(f"ros2.extent: {text!r}: xmax must exceed xmin and ymax ymin")
     return box  # type: ignore[return-value]
+
+
+BUDGET_UNITS = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A robot's budget (``up.budget``): memory in bytes and CPUs (cores, fractions allowed)."""
+
+    memory_bytes: int
+    cpus: float
+
+    def __str__(self) -> str:
+        return f"{self.memory_bytes / 1024**2:.0f} MiB, {self.cpus:g} CPU"
+
+
+def parse_budget(text: str) -> Budget:
+    """``"512M,0.5"`` as a Budget; a ValueError naming what is wrong."""
+    found = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMG]?)i?B?\s*,\s*([0-9]*\.?[0-9]+)\s*", text, re.IGNORECASE)
+    if not found:
+        raise ValueError(f"{text!r} is no \"MEMORY,CPUS\" such as 512M,0.5 (K, M, G: powers of 1024)")
+    memory = int(float(found[1]) * BUDGET_UNITS[found[2].upper()])
+    cpus = float(found[3])
+    if memory < 32 * 1024**2 or not 0.01 <= cpus <= 1024 or not math.isfinite(cpus):
+        raise ValueError(f"{text!r}: give at least 32M of memory and between 0.01 and 1024 CPUs")
+    return Budget(memory, cpus)
 
 
 class ExploreSettings(Section):
@@ -599,6 +627,16 @@ class UpSettings(Section):
 
     record: Path | None = Field(None, description="record every robot's LiDAR stream into this folder (robot-<i>.swrec)")
     replay: Path | None = Field(None, description="run from the recordings in this folder instead of the world's robots")
+    budget: str = Field("", description="every robot's services (lidar, learner, and its router with a router per host) "
+                                        "held to \"MEMORY,CPUS\", e.g. 512M,0.5, in a Linux control group each (root or a "
+                                        "delegated cgroup subtree); their peaks go to summary.json. Empty: no budget")
+
+    @field_validator("budget")
+    @classmethod
+    def _budget(cls, value: str) -> str:
+        if value:
+            parse_budget(value)
+        return value
 
     @model_validator(mode="after")
     def _one_source(self) -> UpSettings:
