@@ -169,8 +169,9 @@ class RosRobots:
         with self.lock:
             h = self.heard[i]
             h.kept.add_odom(msg)
-            if len(h.kept.odom_t) > 10 * self.s.max_scans:  # (a bound: the oldest odometry goes)
-                del h.kept.odom_t[0], h.kept.odom_p[0]
+            if len(h.kept.odom_t) > 10 * self.s.max_scans:  # (a bound: the oldest tenth of the odometry goes)
+                cut = len(h.kept.odom_t) // 10
+                del h.kept.odom_t[:cut], h.kept.odom_p[:cut]
             h.first_odom = h.first_odom or h.kept.odom_p[-1]
             frame = msg.header.frame_id.lstrip("/") or "odom"
             fresh = frame != h.odom_frame
