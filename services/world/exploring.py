@@ -40,6 +40,7 @@ from swarmmap.shared.world.explore import (
     path_costs,
     path_to,
     spread_starts,
+    stalled,
     start_cell,
 )
 from swarmmap.shared.world.floorplan import OccupancyGrid
@@ -263,9 +264,9 @@ class Exploration:
                 self.end(i, f"the learners' last leg ({leg}: rounds {self.cfg.learner.rounds}, a goal every "
                             f"{e.decide_every})")
         self.curve.append(self.coverage.fraction())
-        if len(self.curve) > e.stall_legs and self.curve[-1] - self.curve[-1 - e.stall_legs] < e.stall_gain:
+        if (why := stalled(self.curve, e.stall_legs, e.stall_gain)) is not None:
             for i in range(self.cfg.robots):
-                self.end(i, f"the team's coverage grew less than {e.stall_gain:g} in {e.stall_legs} legs")
+                self.end(i, why)
 
     def scan_all(self, leg: int, end: bool) -> None:
         """Every driving robot's scan; at a leg's ``end``, whose drive ends with it."""

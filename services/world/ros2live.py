@@ -39,7 +39,7 @@ from swarmmap.shared.run.sections import parse_extent
 from swarmmap.shared.wire.codec import encode
 from swarmmap.shared.wire.protocol import Goal, Metrics, Scan, Tensor
 from swarmmap.shared.world.datasets import DatasetError, LaserLog
-from swarmmap.shared.world.explore import GOAL_COLUMNS, RowLog, TeamCoverage
+from swarmmap.shared.world.explore import GOAL_COLUMNS, RowLog, TeamCoverage, stalled
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.teams import Team, make_team
 
@@ -248,9 +248,9 @@ class LiveDrive:
             for i in range(self.cfg.robots):
                 self.end(i, f"the learners' last leg ({leg})")
         self.curve.append(self.coverage.fraction())
-        if len(self.curve) > e.stall_legs and self.curve[-1] - self.curve[-1 - e.stall_legs] < e.stall_gain:
+        if (why := stalled(self.curve, e.stall_legs, e.stall_gain)) is not None:
             for i in range(self.cfg.robots):
-                self.end(i, f"the team's coverage grew less than {e.stall_gain:g} in {e.stall_legs} legs")
+                self.end(i, why)
 
 
 def run(cfg: RunConfig, stop: threading.Event) -> int:

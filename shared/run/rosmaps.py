@@ -19,6 +19,8 @@ from swarmmap.shared.run.atomic import atomic_write_bytes
 from swarmmap.shared.run.config import ConfigError
 from swarmmap.shared.run.mapfiles import FREE_THRESH, OCCUPIED_THRESH
 from swarmmap.shared.run.rosout import grid_values, team_map
+from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.sensing import along_beams
 
 
 def ros_occupancy(mean: np.ndarray, std: np.ndarray | None, seen: np.ndarray | None, unknown_std: float) -> np.ndarray:
@@ -36,15 +38,10 @@ def ros_occupancy(mean: np.ndarray, std: np.ndarray | None, seen: np.ndarray | N
 def seen_cells(shape: tuple[int, int], origin: tuple[float, float], resolution: float, pose, angles: np.ndarray,
                ranges: np.ndarray) -> np.ndarray:
     """(H, W) bool: the cells one scan's beams crossed or ended in (``angles`` absolute)."""
-    step = resolution / 2
-    t = np.arange(0.0, float(np.max(ranges, initial=0.0)) + step, step)
-    d = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
-    pts = np.asarray(pose[:2], np.float64)[None, None, :] + t[None, :, None] * d[:, None, :]
-    pts = pts[t[None, :] <= np.asarray(ranges)[:, None] + step]
-    c = np.floor((pts - np.asarray(origin)) / resolution).astype(np.int64)
-    ok = (c[:, 0] >= 0) & (c[:, 0] < shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < shape[0])
+    grid = OccupancyGrid(np.zeros(shape, np.uint8), resolution, tuple(origin))
+    rows, cols, inside = grid.cells(along_beams(pose, angles, ranges, resolution / 2, through_end=True))
     out = np.zeros(shape, bool)
-    out[c[ok, 1], c[ok, 0]] = True
+    out[rows[inside], cols[inside]] = True
     return out
 
 

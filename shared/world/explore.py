@@ -36,7 +36,7 @@ from swarmmap.shared.run.sections import parse_starts  # noqa: F401 - starts are
 from swarmmap.shared.world.floorplan import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid
 from swarmmap.shared.world.paths import GridPlanner, reachable_cells
-from swarmmap.shared.world.sensing import beam_angles
+from swarmmap.shared.world.sensing import along_beams, beam_angles
 
 POLICIES = ("uncertainty", "frontier", "planned")
 FREE_BELOW = 0.5  # a model's mean below this: believed free
@@ -234,17 +234,19 @@ class TeamCoverage:
 
     def add_scan(self, position: np.ndarray, angles: np.ndarray, ranges: np.ndarray) -> None:
         """Mark the cells the beams of one scan crossed (``angles`` absolute, ``ranges`` to each beam's end)."""
-        g = self.truth
-        step = g.resolution / 2
-        t = np.arange(0.0, float(np.max(ranges, initial=0.0)) + step, step)
-        d = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
-        pts = np.asarray(position, np.float64)[None, None, :] + t[None, :, None] * d[:, None, :]  # (B, T, 2)
-        along = t[None, :] < np.asarray(ranges)[:, None]
-        r, c, inside = g.cells(pts[along])
+        r, c, inside = self.truth.cells(along_beams(position, angles, ranges, self.truth.resolution / 2))
         self.seen[r[inside], c[inside]] = True
 
     def fraction(self) -> float:
         return float((self.seen & self.reachable).sum() / self.total) if self.total else 0.0
+
+
+def stalled(curve: list[float], legs: int, gain: float) -> str | None:
+    """Why a team's drive ends on its coverage ``curve`` (a value per leg): it grew less than ``gain``
+    over the last ``legs`` legs (``explore.stall_legs``, ``stall_gain``); None while it grows."""
+    if len(curve) > legs and curve[-1] - curve[-1 - legs] < gain:
+        return f"the team's coverage grew less than {gain:g} in {legs} legs"
+    return None
 
 
 def distance_at(coverage: np.ndarray, distance: np.ndarray, levels: tuple[float, ...] = (0.5, 0.8, 0.9, 0.95)

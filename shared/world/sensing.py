@@ -20,6 +20,17 @@ def beam_angles(beams: int, fov_deg: float = 360.0) -> np.ndarray:
     return np.linspace(-half, half, beams, endpoint=not np.isclose(fov_deg, 360.0)).astype(np.float32)
 
 
+def along_beams(position, angles: np.ndarray, ranges: np.ndarray, step: float, through_end: bool = False) -> np.ndarray:
+    """Points (M, 2) every ``step`` along each beam from ``position`` (``angles`` absolute): those
+    before the beam's end (``ranges``), or with ``through_end`` up to a step past it (the cell it ended in)."""
+    ranges = np.asarray(ranges)
+    t = np.arange(0.0, float(np.max(ranges, initial=0.0)) + step, step)
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    pts = np.asarray(position[:2], np.float64)[None, None, :] + t[None, :, None] * d[:, None, :]  # (B, T, 2)
+    keep = t[None, :] <= ranges[:, None] + step if through_end else t[None, :] < ranges[:, None]
+    return pts[keep]
+
+
 def beam_ends(position, angles: np.ndarray, ranges: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """The returns of one scan from ``position`` (x, y, ...) as points (K, 2): the ends of the beams that ``hit``."""
     a, r = np.asarray(angles)[hit], np.asarray(ranges)[hit]
