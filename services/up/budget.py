@@ -7,7 +7,9 @@ cgroup v2 (``/sys/fs/cgroup`` with the ``memory`` and ``cpu`` controllers: ``mem
 ``memory.swap.max`` 0, ``cpu.max``) where the host has it, else v1 (the ``memory`` hierarchy's
 ``memory.limit_in_bytes``, and ``memory.memsw.limit_in_bytes`` where swap is accounted; the ``cpu``
 hierarchy's CFS quota; ``cpuacct`` for the CPU time). The groups are ``swarmmap-<run id>/robot-<i>``,
-made by ``up`` (root, or a user to whom the subtree is delegated) and removed when the run is over;
+made by ``up`` (root, or a user to whom the subtree is delegated) and removed when the run is over
+(after a ``kill -9`` of ``up``, by a guard process that waits for it to die: ``python -m
+swarmmap.services.up.budget PID GROUP...``);
 where none can be made, the run is refused before anything starts, saying why. A service joins its
 robot's group before it runs (``preexec_fn``), so none of its memory is ever outside it. At the end,
 each robot's peak memory and CPU time against its budget go to the log and to ``summary.json``
@@ -17,6 +19,11 @@ from __future__ import annotations
 
 import logging
 import os
+import select
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 from swarmmap.shared.run.config import ConfigError
@@ -144,3 +151,57 @@ class Cgroups:
                 top.rmdir()
             except OSError:
                 pass
+
+
+def start_guard(groups: Cgroups, log_path: Path) -> subprocess.Popen:
+    """Start the process that removes the run's groups once this process has died, however it died."""
+    dirs = [str(g) for robot in groups.groups for g in robot] + [str(top) for top in groups.tops]
+    with log_path.open("a") as out:
+        return subprocess.Popen([sys.executable, "-m", "swarmmap.services.up.budget", str(os.getpid()), *dirs],
+                                stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+
+
+def guard(pid: int, dirs: list[Path], wait_s: float = 60.0, grace_s: float = 10.0) -> int:
+    """Wait until process ``pid`` has ended, then remove ``dirs`` (groups, then their parents) as
+    soon as their processes are gone: each service dies with ``up``, and one still in a group
+    ``grace_s`` later (one that was being started as ``up`` died) is killed; for up to ``wait_s``."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        fd = None
+    if fd is not None:
+        select.select([fd], [], [])
+        os.close(fd)
+    deadline = time.monotonic() + wait_s
+    left = [d for d in dirs if d.exists()]
+    removed = []
+    while left and time.monotonic() < deadline:
+        for d in list(left):
+            try:
+                d.rmdir()
+                removed.append(d)
+                left.remove(d)
+            except FileNotFoundError:
+                left.remove(d)
+            except OSError:
+                pass  # (processes still in it, or its groups)
+        if left and time.monotonic() > deadline - wait_s + grace_s:
+            for d in left:
+                for stray in (d / "cgroup.procs").read_text().split() if (d / "cgroup.procs").exists() else []:
+                    try:
+                        os.kill(int(stray), signal.SIGKILL)
+                        log.warning("killed process %s, left in %s after up died", stray, d)
+                    except (ProcessLookupError, ValueError):
+                        pass
+        if left:
+            time.sleep(0.5)
+    if removed:
+        log.warning("up (pid %d) ended without removing its control groups: removed %s", pid, ", ".join(map(str, removed)))
+    if left:
+        log.error("control groups still in use after %.0f s, left: %s", wait_s, ", ".join(map(str, left)))
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s budget-guard: %(message)s")
+    sys.exit(guard(int(sys.argv[1]), [Path(a) for a in sys.argv[2:]]))

@@ -49,6 +49,7 @@ from pathlib import Path
 import yaml
 
 from swarmmap.services.up.budget import Cgroups
+from swarmmap.services.up.budget import start_guard as start_budget_guard
 from swarmmap.services.up.console import Console, closing_block
 from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
 from swarmmap.services.up.preflight import PlanFacts, check_run
@@ -393,15 +394,18 @@ class Launcher:
         0 (every learner finished), 1 (it failed, also when a service refused its settings), 130 (interrupted)."""
         cfg = self.cfg
         facts = check_run(cfg, endpoints=False, observer=cfg.up.observer)  # raises before anything exists
-        if cfg.up.budget:
-            if cfg.learner.transport == "inproc":
-                raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
-                                  "every robot's learner in one process; use the zenoh transport")
-            self.cgroups = Cgroups(cfg.run_id, cfg.robots, parse_budget(cfg.up.budget))  # (a ConfigError where it cannot)
-            log.info("each robot's services in a budget of %s (cgroup %s)", self.cgroups.budget, "v2" if self.cgroups.v2 else "v1")
+        if cfg.up.budget and cfg.learner.transport == "inproc":
+            raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
+                              "every robot's learner in one process; use the zenoh transport")
+        budget = parse_budget(cfg.up.budget) if cfg.up.budget else None
         self.traversal.expected = facts.expected_scans
         self.announce(facts)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        budget_guard = None
+        if budget is not None:
+            self.cgroups = Cgroups(cfg.run_id, cfg.robots, budget)  # (a ConfigError where it cannot)
+            budget_guard = start_budget_guard(self.cgroups, self.run_dir / "logs" / "budget-guard.log")
+            log.info("each robot's services in a budget of %s (cgroup %s)", budget, "v2" if self.cgroups.v2 else "v1")
         write_config(cfg, self.router_endpoints())
         t0 = time.monotonic()
         status = 1
@@ -441,6 +445,8 @@ class Launcher:
             self.complete_summary(time.monotonic() - t0, status)
             if self.cgroups is not None:
                 self.cgroups.close()
+            if budget_guard is not None:
+                budget_guard.terminate()
             if self.console is not None:
                 self.console.close()
                 print(closing_block(self.run_dir), flush=True)
