@@ -22,7 +22,8 @@ import torch.nn.functional as F
 import yaml
 
 from swarmmap.services.learner.metrics import validation_bce
-from swarmmap.services.learner.node import lr_schedule, make_optimizer
+from swarmmap.services.learner.node import lr_schedule
+from swarmmap.services.learner.optim import make_optimizer
 from swarmmap.shared.learning.networks import build_model
 from swarmmap.shared.run.config import RunConfig
 

@@ -59,7 +59,7 @@ from swarmmap.shared.run.runtime import die_with_parent
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.compression import Decompressor
 from swarmmap.shared.wire.protocol import Goal, Keys, Metrics, ProtocolError, Scan, State, WorldMap
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.sensing import beam_ends
 
 log = logging.getLogger("swarmmap.observer")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import json
 import sys
 import threading
 import time
@@ -27,6 +28,8 @@ from swarmmap.shared.run.rundir import final_val_bce, local_time, read_metrics, 
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import decode
 from swarmmap.shared.wire.protocol import Keys, Metrics
+
+MiB = 1024**2
 
 # Not services of the run: the launcher, this tool and the learners' exchange readiness tokens.
 NOT_SERVICES = ("status", "exchange", "up")
@@ -124,7 +127,32 @@ def live_report(cfg: RunConfig, snap: Snapshot, window: float, run_dir: Path | N
                          f"{'' if source == 'live' else '  (from metrics.csv)'}")
     else:
         lines.append(f"learners: none has reported a round yet (of {cfg.robots})")
-    return "\n".join(lines)
+    return "\n".join(lines + budget_lines(run_dir))
+
+
+def budget_lines(run_dir: Path | None, summary: dict | None = None) -> list[str]:
+    """Each robot's memory and CPU against its budget (``up --budget``): live from ``budget.json``,
+    which ``up`` rewrites every few seconds, or a finished run's from its summary."""
+    if summary is not None:
+        doc = summary.get("budget")
+    else:
+        try:
+            doc = json.loads((run_dir / "budget.json").read_text()) if run_dir is not None else None
+        except (OSError, ValueError):
+            doc = None
+    if not doc or not doc.get("robots"):
+        return []
+    lines = ["budgets (memory of the robot's services, its control group's; CPU since the start):"]
+    for robot, u in sorted(doc["robots"].items(), key=lambda kv: int(kv[0])):
+        limit = u.get("memory_limit_bytes") or u.get("memory_bytes") or 0
+        now = f"now {u['memory_bytes_now'] / MiB:.0f} MiB, " if "memory_bytes_now" in u and summary is None else ""
+        wall = doc.get("wall_s") or 0
+        cpus = u.get("cpus_used", u["cpu_s"] / wall if wall else 0.0)
+        lines.append(f"  robot {robot:>3}  {now}peak {u['peak_memory_bytes'] / MiB:.0f} of {limit / MiB:.0f} MiB, "
+                     f"CPU {cpus:.2f} of {u.get('cpus', 0):g}"
+                     + (f", {u['oom_kills']} killed at the limit" if u.get("oom_kills") else "")
+                     + (f", at the limit {u['limit_hits']} time(s)" if u.get("limit_hits") else ""))
+    return lines
 
 
 def finished_report(run_dir: Path, summary: dict) -> str:
@@ -139,7 +167,7 @@ def finished_report(run_dir: Path, summary: dict) -> str:
         val = v.get("final_val_bce", finals.get(int(robot)))
         lines.append(f"  learner {robot:>3}  rounds {v.get('rounds', 0):>5}  final val_bce "
                      f"{'n/a' if val is None else f'{val:.4f}'}{'' if v.get('finished') else '  (did not finish)'}")
-    return "\n".join(lines)
+    return "\n".join(lines + budget_lines(run_dir, summary))
 
 
 def newer_than_summary(run_dir: Path) -> bool:

@@ -56,7 +56,7 @@ def held_out_scores(maps: dict[str, np.ndarray], val_points: np.ndarray, val_lab
     """Scores of a map on a dataset's held-out beams: its mean and std at each validation point's
     cell against the point's label (a run on real logs has no ground-truth grid)."""
     from swarmmap.shared.learning.uncertainty import observed_mask, score_map
-    from swarmmap.shared.world.floorplan import OccupancyGrid
+    from swarmmap.shared.world.grid import OccupancyGrid
 
     res, shape, origin = float(maps["resolution"]), maps["mean"].shape, tuple(maps["origin"])
     rows, cols, inside = OccupancyGrid(np.zeros(shape, np.uint8), res, origin).cells(val_points)
@@ -76,7 +76,7 @@ def reference_row(run_dir: Path) -> dict[str, float] | None:
             return None
         maps = {"mean": gt["reference"], "resolution": gt["resolution"], "origin": gt["origin"]}
         points, labels = gt["val_points"], gt["val_labels"]
-    from swarmmap.shared.world.floorplan import OccupancyGrid
+    from swarmmap.shared.world.grid import OccupancyGrid
 
     rows, cols, inside = OccupancyGrid(np.zeros(maps["mean"].shape, np.uint8), float(maps["resolution"]),
                                        tuple(maps["origin"])).cells(points)

@@ -22,7 +22,8 @@ import numpy as np
 import torch
 
 from swarmmap.services.learner.consensus.base import ConsensusRule
-from swarmmap.services.learner.node import LocalNode, NodeInputs, make_optimizer
+from swarmmap.services.learner.node import LocalNode, NodeInputs
+from swarmmap.services.learner.optim import Optimizer, make_optimizer
 from swarmmap.services.learner.regularization import UniformL2
 from swarmmap.services.learner.robust import PullBound
 from swarmmap.services.learner.settings import DinnoSettings
@@ -68,7 +69,7 @@ class DinnoNode(LocalNode):
             for opt, state in zip(self.optimizers, doc["optimizers"]):
                 opt.load_state_dict(state)
 
-    def _optimizers(self, lr: float) -> list[torch.optim.Optimizer]:
+    def _optimizers(self, lr: float) -> list[Optimizer]:
         return [make_optimizer(self.t.optimizer, group, lr) for group in self.groups if group]
 
     def update(self, k: int, state_i: np.ndarray, peers: dict[int, np.ndarray]) -> np.ndarray:

@@ -35,7 +35,7 @@ from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.protocol import Goal, Scan, Tensor, WorldMap
 from swarmmap.shared.world.explore import FREE_BELOW, Claims, Sensor, frontier_goal, uncertainty_goal
 from swarmmap.shared.world.explore import Goal as Choice
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid, build_logodds
 from swarmmap.shared.world.unseen import Coverage
 

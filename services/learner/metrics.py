@@ -9,6 +9,8 @@ import torch.nn.functional as F
 from swarmmap.shared.learning.bnn import BayesNet, DropoutPlan
 from swarmmap.shared.learning.models import DropoutNet
 
+CHUNK = 8192  # points a deterministic network's forward pass takes at once
+
 
 @torch.no_grad()
 def validation_bce(model: torch.nn.Module, points: torch.Tensor, labels: torch.Tensor, batch: int = 65536) -> float:
@@ -25,8 +27,9 @@ def validation_bce(model: torch.nn.Module, points: torch.Tensor, labels: torch.T
             with model.noise(seed=s):
                 p = torch.stack([model(xy) for _ in range(10)]).mean(0).clamp(1e-7, 1 - 1e-7)
             total += float(F.binary_cross_entropy(p, y, reduction="sum"))
-        else:
-            total += float(F.binary_cross_entropy_with_logits(model.logits(xy), y, reduction="sum"))
+        else:  # (the logits in chunks: a FourierNet's features of 65,536 points at once are 128 MiB a layer)
+            logits = torch.cat([model.logits(xy[c : c + CHUNK]) for c in range(0, len(xy), CHUNK)])
+            total += float(F.binary_cross_entropy_with_logits(logits, y, reduction="sum"))
     return total / max(len(points), 1)
 
 

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from swarmmap.services.learner.optim import make_optimizer
 from swarmmap.services.learner.settings import TrainingSettings
 from swarmmap.services.learner.transport import plain_vector
 from swarmmap.shared.learning.bnn import BayesNet, function_prior_kl, sampled_logits
@@ -73,22 +74,10 @@ def lr_schedule(kind: str, start: float, finish: float, rounds: int) -> np.ndarr
     raise ValueError(f"unknown lr_schedule {kind!r}; allowed: constant, linear, log")
 
 
-def make_optimizer(kind: str, params, lr: float) -> torch.optim.Optimizer:
-    """A torch optimizer of ``kind`` (adam, adamw, sgd) over ``params``."""
-    if kind == "adam":
-        return torch.optim.Adam(params, lr=lr)
-    if kind == "adamw":
-        return torch.optim.AdamW(params, lr=lr)
-    if kind == "sgd":
-        return torch.optim.SGD(params, lr=lr)
-    raise ValueError(f"unknown optimizer {kind!r}; allowed: adam, adamw, sgd")
-
-
 def warm_up(optimizer: str) -> None:
-    """Load now what a node's first optimizer step would load: making the first torch optimizer
-    imports torch's compiler stack, about 1.5 s of one core. Done before Algorithm 1 starts
-    (while the robots drive), it does not slow round 0 (with 32 learners on 2 cores that round
-    took 30 s). Draws no random numbers and keeps nothing."""
+    """Load now what a node's first optimizer step would load (torch's autograd and kernels). Done
+    before Algorithm 1 starts (while the robots drive), it does not slow round 0. Draws no random
+    numbers and keeps nothing."""
     p = torch.zeros(1, requires_grad=True)
     opt = make_optimizer(optimizer, [p], 1e-3)
     (2 * p).sum().backward()

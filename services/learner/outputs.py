@@ -23,7 +23,7 @@ from swarmmap.shared.run.atomic import atomic_write_bytes
 from swarmmap.shared.run.config import RunConfig
 from swarmmap.shared.run.mapfiles import save_learned_map
 from swarmmap.shared.wire.protocol import WorldMap
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 
 log = logging.getLogger("learner")
 

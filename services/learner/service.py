@@ -36,6 +36,7 @@ from collections import Counter
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -49,8 +50,8 @@ from swarmmap.services.learner.codec import StateCodec
 from swarmmap.services.learner.collector import Collector
 from swarmmap.services.learner.errors import LearnerError
 from swarmmap.services.learner.exchange import CHECK_EVERY_S, ExchangeStats, PeerFailure
-from swarmmap.services.learner.explorer import Explorer
 from swarmmap.services.learner.faults import FaultyTransport, any_faults
+from swarmmap.services.learner.fitting import fit
 from swarmmap.services.learner.membership import Replay
 from swarmmap.services.learner.memory_link import MemoryLink
 from swarmmap.services.learner.metrics import consensus_error, validation_bce
@@ -80,6 +81,9 @@ from swarmmap.shared.wire.compression import compressor as make_compressor
 from swarmmap.shared.wire.protocol import MAX_COVERAGE_BYTES, Keys, Metrics, Samples, WorldMap
 from swarmmap.shared.world.unseen import Coverage
 
+if TYPE_CHECKING:
+    from swarmmap.services.learner.explorer import Explorer
+
 log = logging.getLogger("learner")
 MakeLink = Callable[[StateLayout], Link]
 
@@ -106,7 +110,7 @@ class RobotLearner:
         self.t_start = 0.0
         self.start_round, self.start_state, self.resumed, self.doc = 0, None, False, None
         self.before: dict[str, float] = {}  # counters of the runs this one resumes: metrics stay cumulative
-        self.explorer: Explorer | None = None
+        self.explorer: Explorer | None = None  # (imported where a robot explores: its grids need scipy)
         self.checkpoints = (Checkpoints(cfg.run_dir / "checkpoints", robot, cfg.run_id, settings_fingerprint(cfg), self.online)
                             if cfg.run_dir is not None and s.checkpoint_every else None)
 
@@ -121,6 +125,8 @@ class RobotLearner:
             raise LearnerError(str(exc), 2) from None
         self.neighbours = self.graph[self.robot]
         if self.cfg.explore.active:
+            from swarmmap.services.learner.explorer import Explorer
+
             self.explorer = Explorer(self.cfg, self.robot, self.bus, self.collector, self.neighbours, lambda: self.node, world)
             self.bus.announce(self.robot, service="explore")
 
@@ -377,6 +383,11 @@ def run(cfg: RunConfig, stop: threading.Event) -> int:
     s = cfg.learner
     inproc = s.transport == "inproc"
     robots = list(range(cfg.robots)) if inproc else [task_robot(s.robot, cfg.robots, "learner.robot")]
+    if not inproc:  # (in process, one learner serves every robot: there is no robot's budget to fit)
+        cfg, budget, traded = fit(cfg, robots[0])
+        s = cfg.learner
+        if budget.memory_bytes is not None or budget.cpus is not None:
+            log.info("robot %d's budget: %s; %s", robots[0], budget, "; ".join(traded) if traded else "nothing to trade")
     torch.set_num_threads(s.torch_threads)
     device = pick_device(s.device)
     keys = Keys(cfg.key_prefix, cfg.run_id)

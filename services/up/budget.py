@@ -1,7 +1,7 @@
 """A robot's budget (``up.budget``, ``swarmmap up --budget MEMORY,CPUS``): every robot's services
 (its lidar streamer and learner, and its router under ``--netns``) run in a Linux control group of
 their own that holds them to ``MEMORY`` (bytes with K, M or G: powers of 1024) and ``CPUS`` (cores,
-fractions allowed), the same for every robot.
+fractions allowed), the same for every robot or one each (``"512M,0.5;1G,1"``).
 
 cgroup v2 (``/sys/fs/cgroup`` with the ``memory`` and ``cpu`` controllers: ``memory.max``,
 ``memory.swap.max`` 0, ``cpu.max``) where the host has it, else v1 (the ``memory`` hierarchy's
@@ -17,7 +17,9 @@ each robot's peak memory and CPU time against its budget go to the log and to ``
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import os
 import select
 import signal
@@ -26,20 +28,84 @@ import sys
 import time
 from pathlib import Path
 
-from swarmmap.shared.run.config import ConfigError
+from swarmmap.shared.run.config import ConfigError, RunConfig
 from swarmmap.shared.run.sections import Budget
 
 log = logging.getLogger("up")
 ROOT = Path("/sys/fs/cgroup")
 PERIOD_US = 100_000  # the CFS period a CPU quota is a share of
+MiB = 1024**2
+# What a robot's services need beside what the probe measures of its learner, measured on this
+# project's services (x86-64, CPU torch, a demo run under up --budget): a lidar streamer's anonymous
+# and shared memory (51 and 17 MB); a router's; what a learner holds beyond the probe (its Zenoh
+# session and buffers, the world's map and its validation set: 39 MB); the pages of the libraries a
+# robot's processes keep using (torch's, Zenoh's, numpy's: a demo robot ran in 384 MiB and was
+# killed in 352 MiB, with 325 MiB of anonymous and shared memory).
+LIDAR_BYTES = 80 * MiB
+ROUTER_BYTES = 192 * MiB
+LEARNER_SESSION_BYTES = 40 * MiB
+FILES_BYTES = 64 * MiB
+STEP = 32 * MiB  # a budget named in a refusal is rounded up to this
+
+
+def needs(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size_m: tuple[float, float],
+          router: bool) -> dict[str, int]:
+    """What one robot's services need in memory (bytes, each service and ``total``), for the robot
+    with the most data: its learner's working memory measured by a probe process
+    (:mod:`swarmmap.services.learner.probe`), the rest from :data:`LIDAR_BYTES` and its peers."""
+    w, s, robots = cfg.world, cfg.learner, cfg.robots
+    scans = max([int(v / w.speed_mps * w.lidar_rate_hz) + 1 for v in path_lengths_m] or [-(-expected_scans // robots)])
+    if s.data == "online" or cfg.explore.active:
+        scans = min(scans, s.window_scans) if not cfg.explore.active else scans
+    points = scans * w.lidar_beams * (cfg.lidar.samples_per_beam + 1)
+    res = s.map_resolution_m or w.grid_resolution_m
+    cells = math.ceil(size_m[0] / res) * math.ceil(size_m[1] / res)
+    degree = min(2, robots - 1) if s.graph == "ring" else robots - 1
+    val = w.val_scans * w.val_beams * (cfg.lidar.samples_per_beam + 1)
+    doc = {"config": cfg.model_dump(mode="json"), "points": points, "cells": cells, "size_m": list(size_m), "degree": degree,
+           "val_points": val}
+    try:
+        done = subprocess.run([sys.executable, "-m", "swarmmap.services.learner.probe"], input=json.dumps(doc), text=True,
+                              capture_output=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        probe = json.loads(done.stdout.strip().splitlines()[-1])
+    except (subprocess.TimeoutExpired, ValueError, IndexError) as exc:
+        raise ConfigError(f"config error:\n  up.budget: the learner's memory could not be measured ({exc}): "
+                          f"{done.stderr.strip()[-400:] if 'done' in locals() else ''}") from None
+    # Beside the probe: the collector's and the learner's own copies of the points (x, y, label as
+    # float32), the neighbours' States a round holds (received, and the screen's references).
+    learner = probe["peak_anon_bytes"] + 2 * points * 12 + 2 * degree * probe["state_bytes"] + LEARNER_SESSION_BYTES
+    out = {"learner": learner, "lidar": LIDAR_BYTES, **({"router": ROUTER_BYTES} if router else {}), "libraries": FILES_BYTES}
+    return {**out, "total": sum(out.values()), "points": points, "cells": cells}
+
+
+def smallest(total: int) -> int:
+    """The smallest budget (bytes, a multiple of :data:`STEP`) that holds ``total``."""
+    return -(-total // STEP) * STEP
+
+
+def refuse_if_short(budgets: list[Budget], need: dict[str, int]) -> None:
+    """A ConfigError naming each robot whose budget cannot hold ``need`` and the smallest that would."""
+    short = [i for i, b in enumerate(budgets) if b.memory_bytes < need["total"]]
+    if not short:
+        return
+    parts = ", ".join(f"{k} {v / MiB:.0f} MiB" for k, v in need.items() if k not in ("total", "points", "cells"))
+    least = smallest(need["total"])
+    robots = "every robot's" if len(short) == len(budgets) else "robot " + ", ".join(map(str, short)) + "'s"
+    cpus = budgets[short[0]].cpus
+    raise ConfigError(f"config error:\n  up.budget: {robots} budget ({budgets[short[0]]}) cannot hold its services: "
+                      f"they need about {need['total'] / MiB:.0f} MiB ({parts}; its learner holds {need['points']:,} "
+                      f"training points and maps {need['cells']:,} cells). The smallest budget that fits: "
+                      f"--budget {least // MiB}M,{cpus:g}; or a smaller model (learner.model_shape) or fewer points "
+                      "(learner.samples_per_beam)")
 
 
 class Cgroups:
     """The run's group per robot (see the module); :meth:`joiner` is the ``preexec_fn`` that puts a
     process in robot ``i``'s, :meth:`usage` what each robot used."""
 
-    def __init__(self, run_id: str, robots: int, budget: Budget, root: Path = ROOT):
-        self.budget, self.root = budget, root
+    def __init__(self, run_id: str, budgets: list[Budget], root: Path = ROOT):
+        self.budgets, self.root = budgets, root
+        robots = len(budgets)
         name = f"swarmmap-{run_id}"
         self.v2 = (root / "cgroup.controllers").exists() and {"memory", "cpu"} <= set(
             (root / "cgroup.controllers").read_text().split())
@@ -66,7 +132,7 @@ class Cgroups:
                               "drop --budget") from None
 
     def make(self, i: int) -> None:
-        b = self.budget
+        b = self.budgets[i]
         for group in self.groups[i]:
             group.mkdir(exist_ok=True)
         if self.v2:
@@ -102,17 +168,20 @@ class Cgroups:
                 if self.v2:
                     g = groups[0]
                     peak = int((g / "memory.peak").read_text()) if (g / "memory.peak").exists() else 0
+                    now = int((g / "memory.current").read_text()) if (g / "memory.current").exists() else 0
                     usec = next(int(line.split()[1]) for line in (g / "cpu.stat").read_text().splitlines()
                                 if line.startswith("usage_usec"))
                     cpu_s = usec / 1e6
                 else:
                     peak = int((groups[0] / "memory.max_usage_in_bytes").read_text())
+                    now = int(_read(groups[0] / "memory.usage_in_bytes") or 0)
                     acct = groups[2] if len(groups) > 2 else groups[1]
                     cpu_s = int((acct / "cpuacct.usage").read_text()) / 1e9
-                oom = self.oom_kills(i)
+                oom, hits = self.oom_kills(i), self.limit_hits(i)
             except (OSError, ValueError, StopIteration):
                 continue
-            out[i] = {"peak_memory_bytes": peak, "cpu_s": round(cpu_s, 3), "oom_kills": oom}
+            out[i] = {"peak_memory_bytes": peak, "memory_bytes_now": now, "cpu_s": round(cpu_s, 3), "oom_kills": oom,
+                      "limit_hits": hits}
         return out
 
     def oom_kills(self, i: int) -> int:
@@ -124,19 +193,41 @@ class Cgroups:
                 return int(value)
         return 0
 
+    def limit_hits(self, i: int) -> int:
+        """How often robot ``i``'s memory reached its limit (the kernel then reclaims its pages, and
+        a group that keeps hitting it spends its time reading them back)."""
+        g = self.groups[i][0]
+        if not self.v2:
+            return int(_read(g / "memory.failcnt") or 0)
+        for line in (_read(g / "memory.events") or "").splitlines():
+            key, _, value = line.partition(" ")
+            if key == "max":
+                return int(value)
+        return 0
+
+    def live(self, wall_s: float) -> dict:
+        """What ``swarmmap status`` shows of the budget while the run lasts (``RUN_DIR/budget.json``)."""
+        return {"wall_s": round(wall_s, 1), "robots": {str(i): {**u, "memory_limit_bytes": self.budgets[i].memory_bytes,
+                                                                "cpus": self.budgets[i].cpus}
+                                                       for i, u in self.usage().items()}}
+
     def report(self, wall_s: float) -> dict:
         """``summary.json``'s ``budget`` section, each robot's line logged."""
-        b, used = self.budget, self.usage()
-        robots = {}
+        used, robots = self.usage(), {}
         for i, u in sorted(used.items()):
+            b = self.budgets[i]
             share = u["cpu_s"] / wall_s if wall_s > 0 else 0.0
-            robots[str(i)] = {**u, "peak_share": round(u["peak_memory_bytes"] / b.memory_bytes, 4),
+            robots[str(i)] = {**u, "memory_bytes": b.memory_bytes, "cpus": b.cpus,
+                              "peak_share": round(u["peak_memory_bytes"] / b.memory_bytes, 4),
                               "cpus_used": round(share, 3)}
-            log.info("robot %d's budget: peak memory %.0f MiB of %.0f MiB (%.0f%%), CPU %.1f s in %.0f s (%.2f of %g CPU)%s",
+            log.info("robot %d's budget: peak memory %.0f MiB of %.0f MiB (%.0f%%), CPU %.1f s in %.0f s (%.2f of %g CPU)%s%s",
                      i, u["peak_memory_bytes"] / 1024**2, b.memory_bytes / 1024**2,
                      100 * u["peak_memory_bytes"] / b.memory_bytes, u["cpu_s"], wall_s, share, b.cpus,
-                     f"; {u['oom_kills']} process(es) killed at the memory limit" if u["oom_kills"] else "")
-        return {"memory_bytes": b.memory_bytes, "cpus": b.cpus, "cgroup": "v2" if self.v2 else "v1", "robots": robots}
+                     f"; {u['oom_kills']} process(es) killed at the memory limit" if u["oom_kills"] else "",
+                     f"; at its memory limit {u['limit_hits']} time(s) (pages reclaimed)" if u["limit_hits"] else "")
+        same = len(set(self.budgets)) == 1
+        return {"memory_bytes": self.budgets[0].memory_bytes if same else None, "cpus": self.budgets[0].cpus if same else None,
+                "cgroup": "v2" if self.v2 else "v1", "robots": robots}
 
     def close(self) -> None:
         """Remove the groups (their processes are gone)."""
@@ -151,6 +242,13 @@ class Cgroups:
                 top.rmdir()
             except OSError:
                 pass
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return None
 
 
 def start_guard(groups: Cgroups, log_path: Path) -> subprocess.Popen:

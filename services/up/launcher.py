@@ -48,19 +48,18 @@ from pathlib import Path
 
 import yaml
 
-from swarmmap.services.up.budget import Cgroups
+from swarmmap.services.up.budget import Cgroups, MiB, needs, refuse_if_short
 from swarmmap.services.up.budget import start_guard as start_budget_guard
 from swarmmap.services.up.console import Console, closing_block
 from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
 from swarmmap.services.up.preflight import PlanFacts, check_run
 from swarmmap.shared.run.atomic import atomic_write_text
-from swarmmap.shared.run.config import ConfigError, RunConfig, fail, validate_config
+from swarmmap.shared.run.config import Budget, ConfigError, RunConfig, fail, validate_config
 from swarmmap.shared.run.disk import disk_words
 from swarmmap.shared.run.fingerprint import fingerprint_diff, settings_fingerprint
 from swarmmap.shared.run.progress import TeamProgress, TraversalProgress
 from swarmmap.shared.run.rundir import RunDirBusy, config_doc, hold_run_dir, local_time, read_summary, run_state
 from swarmmap.shared.run.runtime import die_with_parent
-from swarmmap.shared.run.sections import parse_budget
 from swarmmap.shared.run.slots import slots_dir
 from swarmmap.shared.wire.bus import Bus, Stopped
 from swarmmap.shared.wire.mesh import BASE, HostRouter, MeshError, host_names, plan, robot_host
@@ -228,6 +227,8 @@ class Launcher:
         if self.per_host:
             self.plan_hosts()
         self.cgroups: Cgroups | None = None  # up.budget: a control group per robot (services/up/budget.py)
+        self._budget_at = 0.0  # when budget.json was last written
+        self._t0 = time.monotonic()
 
     def plan_hosts(self) -> None:
         """A router per host (shared/wire/mesh.py): on loopback ports, or with ``up.netns`` on the
@@ -316,7 +317,7 @@ class Launcher:
     def reason(self, child: Child) -> str:
         """Why ``child`` ended, for summary.json (:func:`failure_reason`; its memory budget where that killed it)."""
         if self.over_budget(child):
-            return (f"{child.name} was killed at robot {child.robot}'s memory budget ({self.cgroups.budget}): give the "
+            return (f"{child.name} was killed at robot {child.robot}'s memory budget ({self.cgroups.budgets[child.robot]}): give the "
                     "robots more (--budget) or a smaller model")
         return failure_reason(child)
 
@@ -394,20 +395,18 @@ class Launcher:
         0 (every learner finished), 1 (it failed, also when a service refused its settings), 130 (interrupted)."""
         cfg = self.cfg
         facts = check_run(cfg, endpoints=False, observer=cfg.up.observer)  # raises before anything exists
-        if cfg.up.budget and cfg.learner.transport == "inproc":
-            raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
-                              "every robot's learner in one process; use the zenoh transport")
-        budget = parse_budget(cfg.up.budget) if cfg.up.budget else None
         self.traversal.expected = facts.expected_scans
         self.announce(facts)
+        budgets = self.fitted_budgets(facts)  # (refused before anything is written)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         budget_guard = None
-        if budget is not None:
-            self.cgroups = Cgroups(cfg.run_id, cfg.robots, budget)  # (a ConfigError where it cannot)
+        if budgets:
+            self.cgroups = Cgroups(cfg.run_id, budgets)  # (a ConfigError where it cannot)
             budget_guard = start_budget_guard(self.cgroups, self.run_dir / "logs" / "budget-guard.log")
-            log.info("each robot's services in a budget of %s (cgroup %s)", budget, "v2" if self.cgroups.v2 else "v1")
+            log.info("each robot's services in a budget of %s (cgroup %s)", budgets[0] if len(set(budgets)) == 1 else
+                     "; ".join(f"robot {i}: {b}" for i, b in enumerate(budgets)), "v2" if self.cgroups.v2 else "v1")
         write_config(cfg, self.router_endpoints())
-        t0 = time.monotonic()
+        t0 = self._t0 = time.monotonic()
         status = 1
         guard = None
         try:
@@ -451,6 +450,23 @@ class Launcher:
                 self.console.close()
                 print(closing_block(self.run_dir), flush=True)
         return status
+
+    def fitted_budgets(self, facts: PlanFacts) -> list[Budget]:
+        """Each robot's budget (``up.budget``; none: empty), once what a robot's services need has
+        been measured (:func:`~swarmmap.services.up.budget.needs`): a ConfigError naming the
+        smallest budget that fits where a robot's is short."""
+        cfg = self.cfg
+        if not cfg.up.budget:
+            return []
+        if cfg.learner.transport == "inproc":
+            raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
+                              "every robot's learner in one process; use the zenoh transport")
+        budgets = [b for i in range(cfg.robots) if (b := cfg.budget(i)) is not None]
+        need = needs(cfg, facts.path_lengths_m, facts.expected_scans, facts.size_m, self.per_host)
+        log.info("each robot's services need about %.0f MiB (learner %.0f MiB, measured on %s training points)",
+                 need["total"] / MiB, need["learner"] / MiB, f"{need['points']:,}")
+        refuse_if_short(budgets, need)
+        return budgets
 
     def announce(self, facts: PlanFacts) -> None:
         """The run's plan, settings and directory, before anything starts."""
@@ -557,9 +573,22 @@ class Launcher:
             if failed_at is not None and time.monotonic() - failed_at > FAILURE_GRACE_S:
                 return 1
             self.show_progress()
+            self.write_budget()
             self.stop.wait(0.2)
         log.info("interrupted; stopping every service")
         return 130
+
+    def write_budget(self, every_s: float = 2.0) -> None:
+        """Each robot's memory and CPU against its budget, into ``RUN_DIR/budget.json`` every
+        ``every_s`` (``swarmmap status`` shows it)."""
+        now = time.monotonic()
+        if self.cgroups is None or now - self._budget_at < every_s:
+            return
+        self._budget_at = now
+        try:
+            atomic_write_text(self.run_dir / "budget.json", json.dumps(self.cgroups.live(now - self._t0)) + "\n")
+        except OSError as exc:
+            log.warning("could not write %s: %s", self.run_dir / "budget.json", exc.strerror)
 
     def complete_summary(self, wall: float, status: int) -> None:
         """Add every service's pid and exit status to the recorder's ``summary.json``."""

@@ -43,7 +43,7 @@ from swarmmap.shared.world.explore import (
     stalled,
     start_cell,
 )
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.paths import GridPlanner
 from swarmmap.shared.world.sensing import beam_ends
 

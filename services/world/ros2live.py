@@ -40,7 +40,7 @@ from swarmmap.shared.wire.codec import encode
 from swarmmap.shared.wire.protocol import Goal, Metrics, Scan, Tensor
 from swarmmap.shared.world.datasets import DatasetError, LaserLog
 from swarmmap.shared.world.explore import GOAL_COLUMNS, RowLog, TeamCoverage, stalled
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.teams import Team, make_team
 
 log = logging.getLogger("world")

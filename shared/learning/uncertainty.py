@@ -24,7 +24,7 @@ import math
 import numpy as np
 from scipy import ndimage, stats
 
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 
 
 def observed_mask(shape: tuple[int, int], origin: tuple[float, float], resolution: float, points: np.ndarray,

@@ -31,6 +31,7 @@ from pydantic_settings.sources.types import EnvNoneType
 from swarmmap.shared import plugins
 from swarmmap.shared.learning.layout import state_copies
 from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named where the config is
+    Budget,
     ExploreSettings,
     FaultSettings,
     LearnerSettings,
@@ -46,6 +47,7 @@ from swarmmap.shared.run.sections import (  # noqa: F401 - the sections, named w
     consensus_fits,
     consensus_options,
     model_kinds,
+    parse_budgets,
     parse_shape,
     parse_starts,
     std_models,
@@ -122,6 +124,16 @@ class RunConfig(Section):
         if e.starts:
             parse_starts(e.starts, self.robots)
         return self
+
+    @model_validator(mode="after")
+    def _budgets(self) -> RunConfig:
+        if self.up.budget:
+            parse_budgets(self.up.budget, self.robots)
+        return self
+
+    def budget(self, robot: int) -> Budget | None:
+        """Robot ``robot``'s budget (``up.budget``), or None."""
+        return parse_budgets(self.up.budget, self.robots)[robot] if self.up.budget else None
 
     @model_validator(mode="after")
     def _secrets_in_run_dir(self) -> RunConfig:

@@ -74,7 +74,7 @@ def load_maps(run_dir: Path, robot: int) -> dict[str, np.ndarray]:
 def truth_grid(run_dir: Path):
     """The run's ground-truth occupancy grid (``groundtruth.npz``: 0 free, 1 occupied, 2 unknown,
     never scored)."""
-    from swarmmap.shared.world.floorplan import OccupancyGrid  # imported here: `swarmmap --help` stays quick
+    from swarmmap.shared.world.grid import OccupancyGrid  # imported here: `swarmmap --help` stays quick
 
     with np.load(run_dir / "groundtruth.npz") as gt:
         return OccupancyGrid((gt["grid"] > 0).astype(np.uint8), float(gt["resolution"]), tuple(gt["origin"]),

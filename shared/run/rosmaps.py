@@ -19,7 +19,7 @@ from swarmmap.shared.run.atomic import atomic_write_bytes
 from swarmmap.shared.run.config import ConfigError
 from swarmmap.shared.run.mapfiles import FREE_THRESH, OCCUPIED_THRESH
 from swarmmap.shared.run.rosout import grid_values, team_map
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.sensing import along_beams
 
 

@@ -307,6 +307,20 @@ def parse_budget(text: str) -> Budget:
     return Budget(memory, cpus)
 
 
+def parse_budgets(text: str, robots: int | None) -> list[Budget]:
+    """``up.budget``: one ``"MEMORY,CPUS"`` for every robot, or one per robot separated by ``;``
+    (``"512M,0.5;1G,1"``); ``robots`` of them (None: any number); a ValueError naming what is wrong."""
+    parts = [p for p in text.split(";") if p.strip()]
+    if not parts:
+        raise ValueError(f"{text!r} gives no budget")
+    budgets = [parse_budget(p) for p in parts]
+    if robots is not None and len(budgets) == 1:
+        return budgets * robots
+    if robots is not None and len(budgets) != robots:
+        raise ValueError(f"{text!r} gives {len(budgets)} budgets for {robots} robot(s): one for every robot, or one each")
+    return budgets
+
+
 class ExploreSettings(Section):
     """Exploration: robots that choose where to drive from what their team has learned (docs/exploration.md)."""
 
@@ -628,14 +642,16 @@ class UpSettings(Section):
     record: Path | None = Field(None, description="record every robot's LiDAR stream into this folder (robot-<i>.swrec)")
     replay: Path | None = Field(None, description="run from the recordings in this folder instead of the world's robots")
     budget: str = Field("", description="every robot's services (lidar, learner, and its router with a router per host) "
-                                        "held to \"MEMORY,CPUS\", e.g. 512M,0.5, in a Linux control group each (root or a "
-                                        "delegated cgroup subtree); their peaks go to summary.json. Empty: no budget")
+                                        "held to \"MEMORY,CPUS\", e.g. 512M,0.5 (or one per robot: \"512M,0.5;1G,1;...\"), in "
+                                        "a Linux control group each (root or a delegated cgroup subtree); a run whose learner "
+                                        "cannot fit is refused at start naming the smallest budget that fits; each robot's "
+                                        "learner fits itself to it (docs/deployment.md); peaks go to summary.json. Empty: none")
 
     @field_validator("budget")
     @classmethod
     def _budget(cls, value: str) -> str:
         if value:
-            parse_budget(value)
+            parse_budgets(value, None)
         return value
 
     @model_validator(mode="after")

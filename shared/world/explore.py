@@ -33,7 +33,7 @@ from scipy import ndimage
 from scipy.sparse import csgraph
 
 from swarmmap.shared.run.sections import parse_starts  # noqa: F401 - starts are read where exploration is
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.logodds import LogOddsGrid
 from swarmmap.shared.world.paths import GridPlanner, reachable_cells
 from swarmmap.shared.world.sensing import along_beams, beam_angles

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.shared.wire.protocol import ValidationRecipe, WorldMap
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 
 
 def beam_angles(beams: int, fov_deg: float = 360.0) -> np.ndarray:

@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 import torch
-from scipy.ndimage import distance_transform_edt
 
 MAX_PENDING_ROUNDS = 16  # rounds of offered coverage held at once (Algorithm 1 needs two or three)
 
@@ -51,6 +50,8 @@ class Coverage:
         if not seen.any():
             return seen
         # a cell is covered when its centre lies within the margin of a cell holding data
+        from scipy.ndimage import distance_transform_edt  # (only where a prior is on: not in every learner)
+
         return distance_transform_edt(~seen) * self.cell <= self.margin
 
     def covered(self) -> np.ndarray:

@@ -9,7 +9,7 @@ from scipy import ndimage
 
 from swarmmap.shared.learning.models import predict
 from swarmmap.shared.learning.networks import load_model
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 
 
 def observed_agreement(run_dir: Path, robot: int, near_m: float = 0.15) -> float:

@@ -12,7 +12,7 @@ import pytest
 
 from swarmmap.services.world.exploring import BODY_RADIUS_M
 from swarmmap.shared.world.explore import EXPLORATION_COLUMNS, GOAL_COLUMNS, exploration_summary, read_exploration
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from tests.conftest import SWARMMAP, clean_env, recording_entities
 
 pytestmark = pytest.mark.e2e

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmmap.services.learner.explorer import observed
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 from swarmmap.shared.world.unseen import Coverage
 
 

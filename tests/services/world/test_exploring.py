@@ -81,7 +81,7 @@ def test_a_beam_ends_at_the_ground_truths_solid_space_not_only_at_walls():
     """A plan's outside is solid in its ground truth: a beam out of an exterior door ends there
     (the robots could never reach what it would have seen); a beam that hits a wall keeps its range."""
     from swarmmap.services.world.exploring import solid_truth
-    from swarmmap.shared.world.floorplan import OccupancyGrid
+    from swarmmap.shared.world.grid import OccupancyGrid
 
     grid = np.zeros((40, 40), np.uint8)  # 2 m x 2 m at 0.05 m, solid beyond x = 1.5 m
     grid[:, 30:] = 1

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from swarmmap.shared.run.overview import error_map, truth_on, write_overview
-from swarmmap.shared.world.floorplan import OccupancyGrid
+from swarmmap.shared.world.grid import OccupancyGrid
 
 RES, ORIGIN = 0.05, (-0.5, -0.5)
 

@@ -1,0 +1,90 @@
+"""What one robot's learner of a run needs in memory, measured before the run starts.
+
+``python -m swarmmap.services.learner.probe`` reads a run's config (JSON, on stdin) and the size of
+the largest robot's data, imports what a learner imports, builds the run's network and node on as
+many synthetic points, runs two of its rounds against as many neighbours' States as its graph gives
+it, takes the validation loss on a set of the run's size, evaluates a map of the run's cells with
+the learner's Monte-Carlo passes, and prints (JSON) the
+peak of its anonymous memory, sampled while it works. ``up --budget`` adds what the probe leaves out
+(:func:`swarmmap.services.up.budget.needs`) and refuses a run whose robots cannot hold it, naming
+the smallest budget that would."""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+
+
+def anon_bytes() -> int:
+    """This process's anonymous resident memory (bytes)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+class Peak:
+    """The highest :func:`anon_bytes` seen, sampled every few milliseconds in a thread."""
+
+    def __init__(self) -> None:
+        self.peak, self.stop = anon_bytes(), threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def run(self) -> None:
+        while not self.stop.wait(0.005):
+            self.peak = max(self.peak, anon_bytes())
+
+    def done(self) -> int:
+        self.stop.set()
+        self.thread.join()
+        return max(self.peak, anon_bytes())
+
+
+def measure(doc: dict) -> dict:
+    from swarmmap.services.learner.fitting import return_big_blocks
+
+    return_big_blocks()  # (as a learner on a budget does)
+    peak = Peak()
+    import numpy as np
+    import torch
+
+    import swarmmap.services.learner.service  # noqa: F401 - what a learner process imports
+    from swarmmap.services.learner.metrics import validation_bce
+    from swarmmap.services.learner.registry import node_for
+    from swarmmap.shared.learning.bnn import predict_mean_std
+    from swarmmap.shared.learning.networks import build_network
+    from swarmmap.shared.run.config import RunConfig
+
+    cfg = RunConfig.model_validate(doc["config"])
+    torch.set_num_threads(1)
+    imported = anon_bytes()
+    w, h = doc["size_m"]
+    bounds = (0.0, 0.0, float(w), float(h))
+    rng = np.random.default_rng(0)
+    n = max(int(doc["points"]), 1)
+    points = (rng.random((n, 2)) * [w, h]).astype(np.float32)
+    labels = (rng.random(n) < 0.3).astype(np.float32)
+    model = build_network(cfg.network(), bounds, cfg.seed)
+    degree = max(int(doc["degree"]), 0)
+    graph = {0: set(range(1, degree + 1)), **{j: {0} for j in range(1, degree + 1)}}
+    node = node_for(cfg.learner, model, points, labels, cfg.seed, bounds=bounds, graph=graph, robot=0)
+    val = int(doc.get("val_points", 0))
+    val_x = torch.from_numpy((rng.random((val, 2)) * [w, h]).astype(np.float32))
+    val_y = torch.from_numpy((rng.random(val) < 0.3).astype(np.float32))
+    state = node.state()
+    peers = {j: state.copy() for j in range(1, degree + 1)}
+    for k in range(2):  # (as a learner: the validation loss of each round after its update)
+        validation_bce(model, val_x, val_y)
+        state = node.update(k, state, peers)
+    cells = max(int(doc["cells"]), 1)
+    side = int(np.ceil(np.sqrt(cells)))
+    grid = np.stack(np.meshgrid(np.linspace(0, w, side), np.linspace(0, h, side)), -1).reshape(-1, 2)[:cells]
+    predict_mean_std(model, grid.astype(np.float32), samples=cfg.learner.mc_samples)
+    return {"peak_anon_bytes": peak.done(), "imported_anon_bytes": imported, "state_bytes": int(state.nbytes)}
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure(json.load(sys.stdin))), flush=True)
