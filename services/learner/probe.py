@@ -5,7 +5,7 @@ the largest robot's data, imports what a learner imports, builds the run's netwo
 many synthetic points, runs two of its rounds against as many neighbours' States as its graph gives
 it, takes the validation loss on a set of the run's size, evaluates a map of the run's cells with
 the learner's Monte-Carlo passes, and prints (JSON) the
-peak of its anonymous memory, sampled while it works. ``up --budget`` adds what the probe leaves out
+peak of its anonymous memory. ``up --budget`` adds what the probe leaves out
 (:func:`swarmmap.services.up.budget.needs`) and refuses a run whose robots cannot hold it, naming
 the smallest budget that would."""
 
@@ -13,41 +13,26 @@ from __future__ import annotations
 
 import json
 import sys
-import threading
 
 
-def anon_bytes() -> int:
-    """This process's anonymous resident memory (bytes)."""
+def status_kib() -> dict[str, int]:
+    """This process's memory figures from /proc/self/status (kB)."""
     with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("RssAnon:"):
-                return int(line.split()[1]) * 1024
-    return 0
+        return {k: int(v.split()[0]) for k, _, v in (line.partition(":") for line in f) if v.strip().endswith("kB")}
 
 
-class Peak:
-    """The highest :func:`anon_bytes` seen, sampled every few milliseconds in a thread."""
-
-    def __init__(self) -> None:
-        self.peak, self.stop = anon_bytes(), threading.Event()
-        self.thread = threading.Thread(target=self.run, daemon=True)
-        self.thread.start()
-
-    def run(self) -> None:
-        while not self.stop.wait(0.005):
-            self.peak = max(self.peak, anon_bytes())
-
-    def done(self) -> int:
-        self.stop.set()
-        self.thread.join()
-        return max(self.peak, anon_bytes())
+def peak_anon_bytes() -> int:
+    """The peak of this process's anonymous memory: its peak resident memory (``VmHWM``, kept by
+    the kernel, so no brief peak is missed) less the library pages and shared memory it holds now
+    (once mapped, they stay)."""
+    s = status_kib()
+    return (s["VmHWM"] - s.get("RssFile", 0) - s.get("RssShmem", 0)) * 1024
 
 
 def measure(doc: dict) -> dict:
-    from swarmmap.services.learner.fitting import return_big_blocks
+    from swarmmap.shared.run.limits import return_big_blocks
 
     return_big_blocks()  # (as a learner on a budget does)
-    peak = Peak()
     import numpy as np
     import torch
 
@@ -60,7 +45,7 @@ def measure(doc: dict) -> dict:
 
     cfg = RunConfig.model_validate(doc["config"])
     torch.set_num_threads(1)
-    imported = anon_bytes()
+    imported = peak_anon_bytes()
     w, h = doc["size_m"]
     bounds = (0.0, 0.0, float(w), float(h))
     rng = np.random.default_rng(0)
@@ -83,7 +68,7 @@ def measure(doc: dict) -> dict:
     side = int(np.ceil(np.sqrt(cells)))
     grid = np.stack(np.meshgrid(np.linspace(0, w, side), np.linspace(0, h, side)), -1).reshape(-1, 2)[:cells]
     predict_mean_std(model, grid.astype(np.float32), samples=cfg.learner.mc_samples)
-    return {"peak_anon_bytes": peak.done(), "imported_anon_bytes": imported, "state_bytes": int(state.nbytes)}
+    return {"peak_anon_bytes": peak_anon_bytes(), "imported_anon_bytes": imported, "state_bytes": int(state.nbytes)}
 
 
 if __name__ == "__main__":

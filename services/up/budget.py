@@ -46,6 +46,7 @@ ROUTER_BYTES = 192 * MiB
 LEARNER_SESSION_BYTES = 40 * MiB
 FILES_BYTES = 64 * MiB
 STEP = 32 * MiB  # a budget named in a refusal is rounded up to this
+AGAIN = 1.05  # the probe measured again (a learner's memory varies by a few MiB from run to run): within this
 
 
 def needs(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size_m: tuple[float, float],
@@ -78,9 +79,24 @@ def needs(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size
     return {**out, "total": sum(out.values()), "points": points, "cells": cells}
 
 
+def checked_budgets(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size_m: tuple[float, float],
+                    router: bool) -> list[Budget]:
+    """Each robot's budget (``up.budget``; none: empty), once what a robot's services need has been
+    measured (:func:`needs`): a ConfigError naming the smallest budget that fits where one is short."""
+    if not cfg.up.budget:
+        return []
+    budgets = [b for i in range(cfg.robots) if (b := cfg.budget(i)) is not None]
+    need = needs(cfg, path_lengths_m, expected_scans, size_m, router)
+    log.info("each robot's services need about %.0f MiB (learner %.0f MiB, measured on %s training points)",
+             need["total"] / MiB, need["learner"] / MiB, f"{need['points']:,}")
+    refuse_if_short(budgets, need)
+    return budgets
+
+
 def smallest(total: int) -> int:
-    """The smallest budget (bytes, a multiple of :data:`STEP`) that holds ``total``."""
-    return -(-total // STEP) * STEP
+    """The smallest budget (bytes, a multiple of :data:`STEP`) that holds ``total`` and what a
+    measurement of it again may find (a few MiB more or less: :data:`AGAIN`)."""
+    return -(-int(total * AGAIN) // STEP) * STEP
 
 
 def refuse_if_short(budgets: list[Budget], need: dict[str, int]) -> None:

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import yaml
 
-from swarmmap.services.up.budget import Cgroups, MiB, needs, refuse_if_short
+from swarmmap.services.up.budget import Cgroups, checked_budgets
 from swarmmap.services.up.budget import start_guard as start_budget_guard
 from swarmmap.services.up.console import Console, closing_block
 from swarmmap.services.up.netns import ROUTER_PORT, NetnsError, Network, free_subnet, start_guard, tag_of
@@ -452,21 +452,11 @@ class Launcher:
         return status
 
     def fitted_budgets(self, facts: PlanFacts) -> list[Budget]:
-        """Each robot's budget (``up.budget``; none: empty), once what a robot's services need has
-        been measured (:func:`~swarmmap.services.up.budget.needs`): a ConfigError naming the
-        smallest budget that fits where a robot's is short."""
-        cfg = self.cfg
-        if not cfg.up.budget:
-            return []
-        if cfg.learner.transport == "inproc":
+        """Each robot's budget, checked against what its services need (:func:`checked_budgets`)."""
+        if self.cfg.up.budget and self.cfg.learner.transport == "inproc":
             raise ConfigError("config error:\n  up.budget: a budget is per robot, and learner.transport inproc runs "
                               "every robot's learner in one process; use the zenoh transport")
-        budgets = [b for i in range(cfg.robots) if (b := cfg.budget(i)) is not None]
-        need = needs(cfg, facts.path_lengths_m, facts.expected_scans, facts.size_m, self.per_host)
-        log.info("each robot's services need about %.0f MiB (learner %.0f MiB, measured on %s training points)",
-                 need["total"] / MiB, need["learner"] / MiB, f"{need['points']:,}")
-        refuse_if_short(budgets, need)
-        return budgets
+        return checked_budgets(self.cfg, facts.path_lengths_m, facts.expected_scans, facts.size_m, self.per_host)
 
     def announce(self, facts: PlanFacts) -> None:
         """The run's plan, settings and directory, before anything starts."""
@@ -701,7 +691,8 @@ def run_prepare(cfg: RunConfig, stop: threading.Event) -> int:
             if (why := run_dir_problem(cfg)) is not None:
                 log.error("refusing to prepare: %s", why)
                 return 2
-            check_run(cfg, endpoints=True)
+            facts = check_run(cfg, endpoints=True)
+            checked_budgets(cfg, facts.path_lengths_m, facts.expected_scans, facts.size_m, cfg.router_per_host())
             print(write_config(cfg))
     except RunDirBusy as exc:
         log.error("refusing to prepare: %s", exc)

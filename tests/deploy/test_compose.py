@@ -168,7 +168,9 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     assert "/runs/compose holds a finished run (it ended " in logs, logs[-3000:]
     assert "never overwritten; choose another SWARMMAP_RUN_ID" in logs, logs[-3000:]
     assert {p: p.read_bytes() for p in (runs / "compose").rglob("*") if p.is_file()} == finished
-    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five", "SWARMMAP_EXPLORE__POLICY": "frontier"}  # exploring
+    five = {"SWARMMAP_ROBOTS": "5", "SWARMMAP_RUN_ID": "five", "SWARMMAP_EXPLORE__POLICY": "frontier",  # exploring,
+            "SWARMMAP_LEARNER_MEMORY": "448m", "SWARMMAP_LEARNER_CPUS": "0.4",  # on a robot's budget
+            "SWARMMAP_LIDAR_MEMORY": "160m", "SWARMMAP_LIDAR_CPUS": "0.1"}
     up = compose(clone, "up", "--exit-code-from", "recorder", env=five)
     assert up.returncode == 0, output(up, clone, five)
     assert_whole_run(runs / "five", robots=5, rounds=60)
@@ -179,6 +181,16 @@ def test_up_alone_then_five_robots_from_the_environment_in_the_same_clone(clone)
     assert_whole_run(runs / "compose", robots=3, rounds=60)
     assert owners(runs) == {(UID, GID)}, f"files owned by {owners(runs)}"
     learners = compose(clone, "ps", "-a", "-q", "learner", env=five).stdout.split()
+    lidars = compose(clone, "ps", "-a", "-q", "lidar", env=five).stdout.split()
+    for containers, memory, nano_cpus in ((learners, 448, 400_000_000), (lidars, 160, 100_000_000)):
+        for c in containers:  # each robot's containers held to its budget, by the engine
+            limits = json.loads(subprocess.run(["docker", "inspect", "--format", "{{json .HostConfig}}", c],
+                                               capture_output=True, text=True, check=True, timeout=60).stdout)
+            assert (limits["Memory"], limits["NanoCpus"]) == (memory * 1024**2, nano_cpus), (c, limits["Memory"])
+    for c in learners:  # and each learner read them and fitted itself
+        logs = subprocess.run(["docker", "logs", c], capture_output=True, text=True, timeout=60)
+        log = logs.stdout + logs.stderr
+        assert "budget: 448 MiB, 0.4 CPU;" in log and "Zenoh shared memory off" in log, log[-2000:]
     served = {c: logged_robots(c) for c in learners}
     assert sorted(r for ids in served.values() for r in ids) == [str(r) for r in range(5)], served
     # A container started again (its host name is its id) serves the robot it served before.

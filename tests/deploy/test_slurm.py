@@ -85,6 +85,52 @@ def test_team_job_runs_a_task_per_service_and_completes(slurm_cluster, tmp_path)
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == kept
 
 
+def srun_commands() -> list[list[str]]:
+    """The command lines of the srun processes running now."""
+    out = []
+    for proc in Path("/proc").iterdir():
+        try:
+            argv = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if argv and argv[0].endswith(b"srun"):
+            out.append([a.decode(errors="replace") for a in argv])
+    return out
+
+
+def test_team_job_asks_slurm_for_each_robots_budget_and_its_learners_fit_it(slurm_cluster, tmp_path):
+    """``--budget 512M,0.5``: each robot's learner step asks for the budget less its lidar's share,
+    on one whole CPU, its lidar step for the rest; the learners fit the budget; one too small is
+    refused at the start of the job, naming the smallest that fits."""
+    job, _ = sbatch("team.sbatch", tmp_path, "--preset", "smoke", "--robots", "2", "--rounds", "20", "--budget", "512M,0.5",
+                    wait=False)
+    asked: dict[str, set[str]] = {}
+
+    def steps_seen() -> bool:
+        for argv in srun_commands():
+            if "learner" in argv or "lidar" in argv:
+                kind = "learner" if "learner" in argv else "lidar"
+                asked.setdefault(kind, set()).update(a for a in argv if a.startswith("--mem-per-cpu"))
+        return set(asked) == {"learner", "lidar"}
+
+    try:
+        assert wait_until(steps_seen, 300, 0.5), asked
+    finally:
+        assert wait_until(lambda: job_state(job) not in ("RUNNING", "COMPLETING", "PENDING", "CONFIGURING"), 600, 1)
+    out = job_output(tmp_path, job)
+    assert job_state(job) == "COMPLETED", out
+    assert asked == {"learner": {"--mem-per-cpu=384M"}, "lidar": {"--mem-per-cpu=128M"}}, asked
+    assert "robot 1's budget: learner 384 MiB on 1 CPU(s), lidar 128 MiB" in out
+    for robot in (0, 1):
+        log = (tmp_path / "run" / "logs" / f"learner-{robot}.log").read_text()
+        assert f"robot {robot}'s budget: 512 MiB, 0.5 CPU;" in log, log[-2000:]
+    small = tmp_path / "small"
+    small.mkdir()
+    job, _ = sbatch("team.sbatch", small, "--preset", "smoke", "--robots", "2", "--budget", "200M,0.5")
+    out = job_output(small, job)
+    assert job_state(job) == "FAILED" and "The smallest budget that fits: --budget" in out, out
+
+
 def learner_pid(run_dir: Path, robot: int) -> int | None:
     """The pid of the learner task of ``robot`` (its SLURM_PROCID) of the run in ``run_dir``."""
     for proc in Path("/proc").iterdir():

@@ -7,9 +7,10 @@ import os
 
 import pytest
 
-from swarmmap.services.learner.fitting import Limits, fit, own_limits
-from swarmmap.services.up.budget import MiB, Cgroups, needs, refuse_if_short
+from swarmmap.services.learner.fitting import fit
+from swarmmap.services.up.budget import Cgroups, MiB, needs, refuse_if_short
 from swarmmap.shared.run.config import ConfigError, resolve
+from swarmmap.shared.run.limits import Limits, own_limits
 from swarmmap.shared.run.sections import Budget, parse_budget
 
 
@@ -81,7 +82,7 @@ def test_a_budget_that_cannot_hold_the_learner_is_refused_naming_the_smallest_th
                                           r"that fits: --budget \d+M,0.5") as refused:
         refuse_if_short([Budget(2 * 1024 * MiB, 1.0), Budget(256 * MiB, 0.5)], need)
     least = int(str(refused.value).split("--budget ")[1].split("M")[0])
-    assert need["total"] <= least * MiB < need["total"] + 32 * MiB
+    assert need["total"] * 1.05 <= least * MiB < need["total"] * 1.05 + 32 * MiB  # (room for a measurement again)
 
 
 def v1_root(tmp_path):
