@@ -56,8 +56,10 @@ def needs(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size
     (:mod:`swarmmap.services.learner.probe`), the rest from :data:`LIDAR_BYTES` and its peers."""
     w, s, robots = cfg.world, cfg.learner, cfg.robots
     scans = max([int(v / w.speed_mps * w.lidar_rate_hz) + 1 for v in path_lengths_m] or [-(-expected_scans // robots)])
-    if s.data == "online" or cfg.explore.active:
-        scans = min(scans, s.window_scans) if not cfg.explore.active else scans
+    if cfg.explore.active:  # an exploring robot keeps the scans of every leg it drove, up to its distance budget
+        scans = int(cfg.explore.distance_m / w.speed_mps * w.lidar_rate_hz) + 1
+    elif s.data == "online":  # (the sliding window)
+        scans = min(scans, s.window_scans)
     points = scans * w.lidar_beams * (cfg.lidar.samples_per_beam + 1)
     res = s.map_resolution_m or w.grid_resolution_m
     cells = math.ceil(size_m[0] / res) * math.ceil(size_m[1] / res)

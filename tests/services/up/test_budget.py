@@ -77,6 +77,11 @@ def test_a_budget_that_cannot_hold_the_learner_is_refused_naming_the_smallest_th
     bigger = needs(resolve({"robots": 2, "learner": {"model_shape": [2, 512, 512, 512, 1]}}, preset="smoke", environ={}),
                    [16.4, 14.7], 0, (6.9, 6.5), router=True)
     assert bigger["learner"] > need["learner"] and "router" in bigger
+    exploring = resolve({"robots": 2, "explore": {"policy": "frontier"}}, preset="smoke", environ={})
+    w = exploring.world  # an exploring robot keeps every leg's scans, up to its distance budget: not its planned path's
+    scans = int(exploring.explore.distance_m / w.speed_mps * w.lidar_rate_hz) + 1
+    assert needs(exploring, [16.4, 14.7], 0, (6.9, 6.5), router=False)["points"] == \
+        scans * w.lidar_beams * (exploring.lidar.samples_per_beam + 1)
     refuse_if_short([Budget(2 * 1024 * MiB, 1.0)] * 2, need)
     with pytest.raises(ConfigError, match=r"robot 1's budget \(256 MiB, 0.5 CPU\) cannot hold .* The smallest budget "
                                           r"that fits: --budget \d+M,0.5") as refused:
