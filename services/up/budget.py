@@ -67,13 +67,14 @@ def needs(cfg: RunConfig, path_lengths_m: list[float], expected_scans: int, size
     val = w.val_scans * w.val_beams * (cfg.lidar.samples_per_beam + 1)
     doc = {"config": cfg.model_dump(mode="json"), "points": points, "cells": cells, "size_m": list(size_m), "degree": degree,
            "val_points": val}
+    said = ""
     try:
         done = subprocess.run([sys.executable, "-m", "swarmmap.services.learner.probe"], input=json.dumps(doc), text=True,
                               capture_output=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        said = done.stderr.strip()[-400:]
         probe = json.loads(done.stdout.strip().splitlines()[-1])
     except (subprocess.TimeoutExpired, ValueError, IndexError) as exc:
-        raise ConfigError(f"config error:\n  up.budget: the learner's memory could not be measured ({exc}): "
-                          f"{done.stderr.strip()[-400:] if 'done' in locals() else ''}") from None
+        raise ConfigError(f"config error:\n  up.budget: the learner's memory could not be measured ({exc}): {said}") from None
     # Beside the probe: the collector's and the learner's own copies of the points (x, y, label as
     # float32), the neighbours' States a round holds (received, and the screen's references).
     learner = probe["peak_anon_bytes"] + 2 * points * 12 + 2 * degree * probe["state_bytes"] + LEARNER_SESSION_BYTES
