@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from swarmmap.shared.run.config import RunConfig, fail, task_robot
-from swarmmap.shared.run.limits import robot_budget
+from swarmmap.shared.run.limits import SHARED_MEMORY_OFF, robot_budget, without_shared_memory
 from swarmmap.shared.wire.bus import Bus
 from swarmmap.shared.wire.codec import decode, encode
 from swarmmap.shared.wire.protocol import Keys, ProtocolError, Samples, Scan, Tensor
@@ -127,10 +127,9 @@ def robot_file(template: str, robot: int) -> str:
 def run(cfg: RunConfig, stop: threading.Event) -> int:
     """The streamer's main loop; returns the process exit status."""
     robot = task_robot(cfg.lidar.robot, cfg.robots, "lidar.robot")
-    if robot_budget(cfg, robot).memory_bytes is not None and cfg.zenoh.shared_memory is None:
-        cfg = cfg.model_copy(deep=True)  # on a robot's budget: Zenoh's shared-memory segments would count against it
-        cfg.zenoh.shared_memory = False
-        log.info("robot %d's budget: Zenoh shared memory off (zenoh.shared_memory: true keeps it)", robot)
+    cfg, off = without_shared_memory(cfg, robot_budget(cfg, robot))
+    if off:
+        log.info("robot %d's budget: %s", robot, SHARED_MEMORY_OFF)
     if cfg.lidar.record and cfg.lidar.replay:
         fail("config error:\n  lidar.record, lidar.replay: choose one")
     if cfg.lidar.replay:

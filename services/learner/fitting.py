@@ -20,7 +20,14 @@ from __future__ import annotations
 import math
 
 from swarmmap.shared.run.config import RunConfig
-from swarmmap.shared.run.limits import BIG_BLOCK, Limits, return_big_blocks, robot_budget
+from swarmmap.shared.run.limits import (
+    BIG_BLOCK,
+    SHARED_MEMORY_OFF,
+    Limits,
+    return_big_blocks,
+    robot_budget,
+    without_shared_memory,
+)
 
 
 def fit(cfg: RunConfig, robot: int, limits: Limits | None = None) -> tuple[RunConfig, Limits, list[str]]:
@@ -29,14 +36,14 @@ def fit(cfg: RunConfig, robot: int, limits: Limits | None = None) -> tuple[RunCo
     budget = robot_budget(cfg, robot, limits)
     if budget.memory_bytes is None and budget.cpus is None:
         return cfg, budget, []
+    cfg, off = without_shared_memory(cfg, budget)
     cfg = cfg.model_copy(deep=True)
     traded = []
     if budget.cpus is not None and cfg.learner.torch_threads > (threads := max(1, math.floor(budget.cpus))):
         traded.append(f"torch threads {cfg.learner.torch_threads} -> {threads}")
         cfg.learner.torch_threads = threads
-    if budget.memory_bytes is not None and cfg.zenoh.shared_memory is None:
-        cfg.zenoh.shared_memory = False
-        traded.append("Zenoh shared memory off (zenoh.shared_memory: true keeps it)")
+    if off:
+        traded.append(SHARED_MEMORY_OFF)
     if budget.memory_bytes is not None and return_big_blocks():
         traded.append(f"freed blocks of {BIG_BLOCK >> 20} MiB and more returned to the system at once")
     return cfg, budget, traded

@@ -45,7 +45,6 @@ def measure(doc: dict) -> dict:
 
     cfg = RunConfig.model_validate(doc["config"])
     torch.set_num_threads(1)
-    imported = peak_anon_bytes()
     w, h = doc["size_m"]
     bounds = (0.0, 0.0, float(w), float(h))
     rng = np.random.default_rng(0)
@@ -61,14 +60,14 @@ def measure(doc: dict) -> dict:
     val_y = torch.from_numpy((rng.random(val) < 0.3).astype(np.float32))
     state = node.state()
     peers = {j: state.copy() for j in range(1, degree + 1)}
-    for k in range(2):  # (as a learner: the validation loss of each round after its update)
+    for k in range(2):  # (as a learner: a round's validation loss, then its update)
         validation_bce(model, val_x, val_y)
         state = node.update(k, state, peers)
     cells = max(int(doc["cells"]), 1)
     side = int(np.ceil(np.sqrt(cells)))
     grid = np.stack(np.meshgrid(np.linspace(0, w, side), np.linspace(0, h, side)), -1).reshape(-1, 2)[:cells]
     predict_mean_std(model, grid.astype(np.float32), samples=cfg.learner.mc_samples)
-    return {"peak_anon_bytes": peak_anon_bytes(), "imported_anon_bytes": imported, "state_bytes": int(state.nbytes)}
+    return {"peak_anon_bytes": peak_anon_bytes(), "state_bytes": int(state.nbytes)}
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ import json
 import logging
 import math
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -29,6 +28,8 @@ import time
 from pathlib import Path
 
 from swarmmap.shared.run.config import ConfigError, RunConfig
+from swarmmap.shared.run.limits import read_group_file
+from swarmmap.shared.run.runtime import wait_for_exit
 from swarmmap.shared.run.sections import Budget
 
 log = logging.getLogger("up")
@@ -193,7 +194,7 @@ class Cgroups:
                     cpu_s = usec / 1e6
                 else:
                     peak = int((groups[0] / "memory.max_usage_in_bytes").read_text())
-                    now = int(_read(groups[0] / "memory.usage_in_bytes") or 0)
+                    now = int(read_group_file(groups[0] / "memory.usage_in_bytes") or 0)
                     acct = groups[2] if len(groups) > 2 else groups[1]
                     cpu_s = int((acct / "cpuacct.usage").read_text()) / 1e9
                 oom, hits = self.oom_kills(i), self.limit_hits(i)
@@ -217,8 +218,8 @@ class Cgroups:
         a group that keeps hitting it spends its time reading them back)."""
         g = self.groups[i][0]
         if not self.v2:
-            return int(_read(g / "memory.failcnt") or 0)
-        for line in (_read(g / "memory.events") or "").splitlines():
+            return int(read_group_file(g / "memory.failcnt") or 0)
+        for line in (read_group_file(g / "memory.events") or "").splitlines():
             key, _, value = line.partition(" ")
             if key == "max":
                 return int(value)
@@ -263,13 +264,6 @@ class Cgroups:
                 pass
 
 
-def _read(path: Path) -> str | None:
-    try:
-        return path.read_text().strip()
-    except OSError:
-        return None
-
-
 def start_guard(groups: Cgroups, log_path: Path) -> subprocess.Popen:
     """Start the process that removes the run's groups once this process has died, however it died."""
     dirs = [str(g) for robot in groups.groups for g in robot] + [str(top) for top in groups.tops]
@@ -282,13 +276,7 @@ def guard(pid: int, dirs: list[Path], wait_s: float = 60.0, grace_s: float = 10.
     """Wait until process ``pid`` has ended, then remove ``dirs`` (groups, then their parents) as
     soon as their processes are gone: each service dies with ``up``, and one still in a group
     ``grace_s`` later (one that was being started as ``up`` died) is killed; for up to ``wait_s``."""
-    try:
-        fd = os.pidfd_open(pid)
-    except ProcessLookupError:
-        fd = None
-    if fd is not None:
-        select.select([fd], [], [])
-        os.close(fd)
+    wait_for_exit(pid)
     deadline = time.monotonic() + wait_s
     left = [d for d in dirs if d.exists()]
     removed = []

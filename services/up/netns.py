@@ -31,7 +31,6 @@ import ipaddress
 import json
 import logging
 import os
-import select
 import shutil
 import subprocess
 import sys
@@ -40,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from swarmmap.shared.run.atomic import atomic_write_text
+from swarmmap.shared.run.runtime import wait_for_exit
 from swarmmap.shared.wire.mesh import BASE, host_names
 
 log = logging.getLogger("netns")
@@ -342,13 +342,7 @@ def start_guard(state_path: Path, log_path: Path) -> subprocess.Popen:
 
 def guard(pid: int, state_path: Path) -> int:
     """Wait until process ``pid`` has ended, then remove the network in ``state_path`` (if any is left)."""
-    try:
-        fd = os.pidfd_open(pid)
-    except ProcessLookupError:
-        fd = None
-    if fd is not None:
-        select.select([fd], [], [])
-        os.close(fd)
+    wait_for_exit(pid)
     try:
         net = Network.load(state_path)
     except NetnsError:

@@ -39,7 +39,8 @@ class Limits:
         return f"{mem}, {cpu}"
 
 
-def _read(path: Path) -> str | None:
+def read_group_file(path: Path) -> str | None:
+    """A control group's file, stripped; None where it cannot be read (no such file, a group gone)."""
     try:
         return path.read_text().strip()
     except OSError:
@@ -56,7 +57,7 @@ def own_limits(proc: Path = Path("/proc/self/cgroup"), root: Path = Path("/sys/f
     In a container, whose own group is mounted at the root, the root's files are its limits."""
     memory: float | None = None
     cpus: float | None = None
-    for line in (_read(proc) or "").splitlines():
+    for line in (read_group_file(proc) or "").splitlines():
         _, controllers, path = line.split(":", 2)
         v2 = controllers == ""
         names = set(controllers.split(","))
@@ -71,15 +72,15 @@ def own_limits(proc: Path = Path("/proc/self/cgroup"), root: Path = Path("/sys/f
             if not group.exists():
                 continue
             if v2 or "memory" in names:
-                raw = _read(group / ("memory.max" if v2 else "memory.limit_in_bytes"))
+                raw = read_group_file(group / ("memory.max" if v2 else "memory.limit_in_bytes"))
                 if raw and raw != "max" and int(raw) < UNLIMITED:
                     memory = _smaller(memory, int(raw))
             if v2 or "cpu" in names:
                 if v2:
-                    raw = _read(group / "cpu.max")
+                    raw = read_group_file(group / "cpu.max")
                     quota, _, period = (raw or "max").partition(" ")
                 else:
-                    quota, period = _read(group / "cpu.cfs_quota_us") or "-1", _read(group / "cpu.cfs_period_us") or ""
+                    quota, period = read_group_file(group / "cpu.cfs_quota_us") or "-1", read_group_file(group / "cpu.cfs_period_us") or ""
                 if quota not in ("max", "-1") and period:
                     cpus = _smaller(cpus, int(quota) / int(period))
     return Limits(int(memory) if memory is not None else None, cpus)
@@ -92,3 +93,17 @@ def robot_budget(cfg: RunConfig, robot: int, limits: Limits | None = None) -> Li
     own = own_limits() if limits is None else limits
     return Limits(_smaller(stated.memory_bytes if stated else None, own.memory_bytes),
                   _smaller(stated.cpus if stated else None, own.cpus))
+
+
+SHARED_MEMORY_OFF = "Zenoh shared memory off (zenoh.shared_memory: true keeps it)"
+
+
+def without_shared_memory(cfg: RunConfig, budget: Limits) -> tuple[RunConfig, bool]:
+    """``cfg`` with Zenoh's shared memory off where a memory budget holds the process and
+    ``zenoh.shared_memory`` is unset (its segments, about 80 MiB a process, would count against the
+    budget), a copy; and whether it was turned off."""
+    if budget.memory_bytes is None or cfg.zenoh.shared_memory is not None:
+        return cfg, False
+    cfg = cfg.model_copy(deep=True)
+    cfg.zenoh.shared_memory = False
+    return cfg, True

@@ -1,11 +1,13 @@
 """What every service process does at start: logging, a shutdown event set by SIGINT/SIGTERM;
-and what a process that starts others gives them: death with their parent."""
+and what a process that starts others gives them: death with their parent; and a wait for a
+process that is not its child to end (the launchers' guards)."""
 
 from __future__ import annotations
 
 import ctypes
 import logging
 import os
+import select
 import signal
 import threading
 
@@ -19,6 +21,16 @@ def die_with_parent() -> None:
     """In a child, before exec: get SIGTERM when its parent dies (even by SIGKILL), so no child outlives it."""
     if _prctl is not None:
         _prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+
+
+def wait_for_exit(pid: int) -> None:
+    """Return once process ``pid`` (not a child of this one) has ended, at once if it has already."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return
+    select.select([fd], [], [])
+    os.close(fd)
 
 
 def setup_logging(level: str, name: str) -> logging.Logger:
